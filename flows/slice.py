@@ -1,0 +1,88 @@
+"""The slicing flow: model -> solid -> samples -> cage -> field -> layers -> outputs, every step cached."""
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from prefect import flow
+from prefect.states import State
+
+from neuralslicer.config import SliceConfig
+from neuralslicer.model.spec import ModelSpec, spec_digest
+from storage import ArtifactRef, ArtifactStore, write_json_atomic
+from tasks.common import run_step
+from tasks.export import export_outputs
+from tasks.steps import load_model, make_cage, make_layers, optimise_field_task, sample_surface, solid_surface
+
+
+@dataclass
+class RunLog:
+    """The state of every task of one flow run, in order."""
+
+    states: list[tuple[str, str]] = field(default_factory=list)
+
+    def run(self, task: Any, **params: Any) -> ArtifactRef:
+        """Run a task, record its final state name (Completed / Cached / ...), return its result."""
+        state: State = run_step(task, **params)
+        self.states.append((task.name, state.name))
+        return state.result()
+
+
+def model_name(spec: ModelSpec) -> str:
+    """A store-safe model name from the spec's source file."""
+    source = getattr(spec, "source", None) or spec.components[0].file
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(source).stem) or "model"
+
+
+def default_objectives(spec: ModelSpec) -> list[str]:
+    """sf, po, plus sr when the spec has an FEA load case."""
+    return ["sf", "po"] + (["sr"] if getattr(spec, "fea", None) is not None else [])
+
+
+@flow(name="neuralslicer-slice")
+def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -> dict[str, Any]:
+    """Slice one model: every step a cached task whose artifacts live in the store; outputs in out_dir."""
+    start = time.perf_counter()
+    log = RunLog()
+    objectives = config.objectives if config.objectives is not None else default_objectives(spec)
+    name = model_name(spec)
+    model = log.run(load_model, store=store, name=name, spec=spec, content=spec_digest(spec))
+    solid = log.run(solid_surface, store=store, model=model)
+    samples = log.run(sample_surface, store=store, model=model, config=config.samples)
+    cage = log.run(make_cage, store=store, model=model, samples=samples, config=config.cage)
+    stress = None
+    if "sr" in objectives:
+        stress = log.run(_stress_samples_task(), store=store, model=model)
+    field_ref = log.run(
+        optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
+        objectives=objectives, config=config.neural,
+    )
+    layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
+    log.run(
+        export_outputs, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
+        field=field_ref, layers=layers, stress=stress, alpha_deg=config.alpha_deg, beta_deg=config.neural.loss.beta_deg,
+    )
+    summary = {
+        "tasks": [{"task": t, "state": s} for t, s in log.states],
+        "all_cached": all(s == "Cached" for _, s in log.states),
+        "wall_s": time.perf_counter() - start,
+        "store": store,
+        "out_dir": out_dir,
+    }
+    write_json_atomic(Path(out_dir) / "run.json", summary)
+    return summary
+
+
+def _stress_samples_task() -> Any:
+    """The FEA stress-samples task (imported lazily: only SR runs need the FEA)."""
+    from tasks.fea import stress_samples_task
+
+    return stress_samples_task
+
+
+def ensure_store(store: str) -> str:
+    """Create the store if needed and return its canonical location."""
+    return ArtifactStore(store).root

@@ -1,0 +1,139 @@
+"""The cage: a tetrahedral mesh of an offset of the solid, with a user-chosen element count."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pytetwild
+import trimesh
+from pydantic import BaseModel, Field
+from skimage.measure import marching_cubes
+
+from neuralslicer.errors import NeuralSlicerError
+from neuralslicer.tetmesh import TetLocator, boundary_faces, orient_tets, tet_volumes
+
+# fTetWild produces about this many times more tets than (offset volume) / (regular tet of the ideal edge)
+TETWILD_DENSITY = 2.0
+
+
+class CageConfig(BaseModel):
+    """How the cage is built."""
+
+    n_elements: int = Field(10_000, ge=200, le=2_000_000, description="target number of cage tets")
+    offset: float | None = Field(None, gt=0, description="offset of the cage surface from the solid, mm (default: auto)")
+    tolerance: float = Field(0.35, gt=0, description="accepted relative deviation from n_elements before one retry")
+    seed: int = Field(0, description="seed of the containment check's random interior points")
+
+
+@dataclass
+class Cage:
+    """A tet mesh enclosing the solid: vertices (n,3), positively oriented tets (m,4)."""
+
+    vertices: np.ndarray
+    tets: np.ndarray
+    offset: float
+    edge_length: float
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Store-able arrays and attributes."""
+        return {"vertices": self.vertices, "tets": self.tets}, {
+            "offset": self.offset,
+            "edge_length": self.edge_length,
+            "n_elements": int(len(self.tets)),
+            "n_vertices": int(len(self.vertices)),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Cage:
+        """Rebuild from store arrays."""
+        return cls(arrays["vertices"], arrays["tets"].astype(np.int64), attrs["offset"], attrs["edge_length"])
+
+    def surface(self) -> trimesh.Trimesh:
+        """The cage boundary as a triangle mesh."""
+        return trimesh.Trimesh(self.vertices, boundary_faces(self.tets), process=True)
+
+
+def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, offset: float, h: float) -> trimesh.Trimesh:
+    """The level set H = offset by marching cubes on a grid of spacing h."""
+    lo = bounds[0] - offset - 2 * h
+    hi = bounds[1] + offset + 2 * h
+    shape = np.ceil((hi - lo) / h).astype(int) + 1
+    axes = [lo[i] + h * np.arange(shape[i]) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    values = H(grid).reshape(shape)
+    verts, faces, _, _ = marching_cubes(values, level=offset, spacing=(h, h, h))
+    mesh = trimesh.Trimesh(verts + lo, faces[:, ::-1], process=True)  # skimage faces point to increasing value
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild on the offset surface at an absolute ideal edge length."""
+    v, t = pytetwild.tetrahedralize(
+        np.asarray(surface.vertices, dtype=np.float64),
+        np.asarray(surface.faces, dtype=np.int32),
+        edge_length_abs=edge,
+        quiet=True,
+    )
+    t = t.astype(np.int64)
+    t = orient_tets(v, t)
+    keep = np.abs(tet_volumes(v, t)) > 0
+    t = t[keep]
+    used = np.unique(t)
+    remap = np.full(len(v), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[t]
+
+
+def check_containment(cage: Cage, points: np.ndarray) -> np.ndarray:
+    """Indices of the points that no cage tet contains (empty when the cage encloses them all)."""
+    tet, _ = TetLocator(cage.vertices, cage.tets).locate(points, tol=1e-7)
+    return np.flatnonzero(tet < 0)
+
+
+def build_cage(
+    H: Callable[[np.ndarray], np.ndarray],
+    bounds: np.ndarray,
+    volume: float,
+    config: CageConfig,
+    check_points: np.ndarray,
+) -> Cage:
+    """Offset surface of the solid, tetrahedralized at the target element count, verified to contain `check_points`."""
+    bounds = np.asarray(bounds, dtype=np.float64)
+    diag = float(np.linalg.norm(bounds[1] - bounds[0]))
+    # ideal edge from the target count over an estimate of the cage volume
+    edge = (6 * np.sqrt(2) * volume * TETWILD_DENSITY / config.n_elements) ** (1 / 3)
+    h = min(edge / 2, diag / 40)
+    offset = config.offset if config.offset is not None else max(1.5 * h, 0.01 * diag)
+    for _attempt in range(4):
+        surface = offset_surface(H, bounds, offset, h)
+        cage_volume = abs(surface.volume)
+        edge = (6 * np.sqrt(2) * cage_volume * TETWILD_DENSITY / config.n_elements) ** (1 / 3)
+        v, t = _tetrahedralize(surface, edge)
+        ratio = len(t) / config.n_elements
+        if abs(ratio - 1) > config.tolerance:
+            edge *= ratio ** (1 / 3)
+            v, t = _tetrahedralize(surface, edge)
+        cage = Cage(v, t, float(offset), float(edge))
+        missing = check_containment(cage, check_points)
+        if len(missing) == 0:
+            return cage
+        offset += h
+    raise NeuralSlicerError(f"cage: {len(missing)} points of the solid remain outside the cage after 4 offsets")
+
+
+def interior_points(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Up to n random points with H < 0 (rejection sampling in the bounding box)."""
+    rng = np.random.default_rng(seed)
+    found = []
+    total = 0
+    for _ in range(20):
+        p = rng.uniform(bounds[0], bounds[1], size=(4 * n, 3))
+        p = p[H(p) < 0]
+        found.append(p)
+        total += len(p)
+        if total >= n:
+            break
+    return np.concatenate(found)[:n]

@@ -1,0 +1,55 @@
+"""The slicing configuration: one typed model per step, loaded from YAML and overridden by CLI options."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, Field, ValidationError
+
+from neuralslicer.cage import CageConfig
+from neuralslicer.errors import InputError
+from neuralslicer.layers import LayerConfig
+from neuralslicer.neural.config import NeuralConfig
+
+Objective = Literal["sf", "sr", "po", "ca"]
+
+
+class SampleConfig(BaseModel):
+    """Surface samples B."""
+
+    n_samples: int = Field(20_000, ge=100, description="number of surface samples B")
+    k: int = Field(10, ge=2, description="nearest neighbours for area weights and the PO loss")
+    seed: int = Field(0, description="sampling seed")
+
+
+class SliceConfig(BaseModel):
+    """Everything `neuralslicer slice` needs besides the model."""
+
+    model_config = {"extra": "forbid"}
+
+    objectives: list[Objective] | None = Field(None, description="default: sf, po (+ sr when the spec has loads)")
+    samples: SampleConfig = Field(default_factory=SampleConfig)
+    cage: CageConfig = Field(default_factory=CageConfig)
+    neural: NeuralConfig = Field(default_factory=NeuralConfig)
+    layers: LayerConfig = Field(default_factory=LayerConfig)
+    alpha_deg: float = Field(45.0, gt=0, lt=90, description="self-supporting angle for the SF metrics")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> SliceConfig:
+        """Load a configuration file; errors name the file and the key."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "no such configuration file")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise InputError(path, f"not valid YAML: {exc}") from None
+        if not isinstance(data, dict):
+            raise InputError(path, "a configuration file must be a mapping of sections")
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            key = ".".join(str(p) for p in err["loc"])
+            raise InputError(f"{path}: {key}", err["msg"]) from None

@@ -1,0 +1,160 @@
+"""G-code writers: LinuxCNC RS274/NGC (A = filament) and RepRap/Marlin (E), written atomically."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from neuralslicer.motion.planning import TRAVEL, MachineProgram, program_metrics
+from neuralslicer.toolpath.io import atomic_path
+
+MIN_MOVE_S = 1e-4
+
+
+def _fmt(values: np.ndarray, decimals: int) -> np.ndarray:
+    """Fixed-point strings without negative zero."""
+    v = np.round(np.asarray(values, np.float64), decimals)
+    v[v == 0] = 0.0
+    return np.char.mod(f"%.{decimals}f", v)
+
+
+def _words(letter: str, strings: np.ndarray, always: np.ndarray | None = None) -> np.ndarray:
+    """``letter + value`` where the value changed from the previous line (modal), else ''."""
+    changed = np.ones(len(strings), bool)
+    changed[1:] = strings[1:] != strings[:-1]
+    if always is not None:
+        changed |= always
+    return np.where(changed, np.char.add(letter, strings), "")
+
+
+def _join_lines(prefix: np.ndarray, cols: list[np.ndarray]) -> list[str]:
+    return [" ".join(w for w in words if w) for words in zip(prefix, *cols)]
+
+
+_CHUNK = 50_000
+
+
+def _axis_columns(program: MachineProgram, start: int, stop: int) -> list[np.ndarray]:
+    """Axis words of moves start..stop-1, modal against move start-1."""
+    g = program.profile.gcode
+    lx, ly, lz, lb, lc, le = program.axis_letters
+    lo = max(start - 1, 0)
+    m = program.machine[lo:stop]
+    first = np.zeros(len(m), bool)
+    first[0] = start == 0
+    cols = []
+    for j, (letter, dec) in enumerate([(lx, g.decimals_linear), (ly, g.decimals_linear),
+                                       (lz, g.decimals_linear), (lb, g.decimals_rotary),
+                                       (lc, g.decimals_rotary)]):
+        cols.append(_words(letter, _fmt(m[:, j], dec), always=first))
+    cols.append(_words(le, _fmt(program.extruder[lo:stop], g.decimals_extruder), always=first))
+    return [c[start - lo:] for c in cols]
+
+
+def _summary_comment(program: MachineProgram, open_c: str, close_c: str) -> list[str]:
+    met = program_metrics(program)
+    lx, ly, lz, lb, lc, le = program.axis_letters
+    return [
+        f"{open_c}Neural Slicer multi-axis program, profile {program.profile.name}{close_c}",
+        f"{open_c}{lx}{ly}{lz}: tool tip in machine mm; {lb}: table tilt deg; {lc}: table rotation deg, "
+        f"unwrapped; {le}: filament mm, absolute{close_c}",
+        f"{open_c}part offset on the C axis: {' '.join(f'{v:.4f}' for v in program.part_offset)}{close_c}",
+        f"{open_c}moves {met['n_moves']}, waypoints {met['n_waypoints']}, est. time "
+        f"{met['estimated_print_time_s']:.1f} s, material {met['material_mm3']:.1f} mm3{close_c}",
+    ]
+
+
+def _linuxcnc_body(program: MachineProgram, start: int, stop: int) -> list[str]:
+    g = program.profile.gcode
+    dt = np.maximum(program.time_s[start:stop], MIN_MOVE_S)
+    if g.inverse_time:
+        feed = np.char.add("F", _fmt(60.0 / dt, 3))
+    else:
+        f = program.profile.feeds
+        lo = max(start - 1, 0)
+        v = np.where(program.kind[lo:stop] == TRAVEL, f.travel_mm_s, f.print_mm_s) * 60.0
+        feed = _words("F", _fmt(v, 1))[start - lo:]
+    prefix = np.full(stop - start, "G1", dtype=object)
+    if start == 0:
+        prefix[0] = "G0"
+        feed[0] = ""
+    return _join_lines(prefix, _axis_columns(program, start, stop) + [feed])
+
+
+def _linuxcnc_chunks(program: MachineProgram):
+    g = program.profile.gcode
+    le = program.axis_letters[5]
+    n = len(program)
+    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, "", "")]
+    head += ["G21 G90 G17 G40 G49 G80 G94", "G64 P0.01", f"G92 {le}0"] + list(g.header)
+    yield head
+    yield _linuxcnc_body(program, 0, min(1, n))
+    yield ["G93" if g.inverse_time else "G94"]
+    for start in range(1, n, _CHUNK):
+        yield _linuxcnc_body(program, start, min(start + _CHUNK, n))
+    yield ["G94", "G92.1"] + list(g.footer) + ["M2"]
+
+
+def _reprap_body(program: MachineProgram, start: int, stop: int) -> list[str]:
+    g = program.profile.gcode
+    lo = max(start - 1, 0)
+    dt = np.maximum(program.time_s[lo:stop], MIN_MOVE_S)
+    m = program.machine[lo:stop]
+    k = len(m)
+    dxyz, drot, de = np.zeros(k), np.zeros(k), np.zeros(k)
+    dxyz[1:] = np.linalg.norm(np.diff(m[:, :3], axis=0), axis=1)
+    drot[1:] = np.linalg.norm(np.diff(m[:, 3:5], axis=0), axis=1)
+    de[1:] = np.abs(np.diff(program.extruder[lo:stop]))
+    dist = np.sqrt(dxyz ** 2 + drot ** 2) if g.feed_basis == "all_axes" else dxyz
+    dist = np.where(dist > 1e-9, dist, np.where(drot > 1e-9, drot, de))
+    feed = np.char.add("F", _fmt(np.maximum(dist / dt * 60.0, 1.0), 1))[start - lo:]
+    kind = program.kind[start:stop]
+    prefix = np.where(kind == TRAVEL, "G0", "G1").astype(object)
+    if start == 0:
+        feed[0] = "F" + f"{program.profile.feeds.travel_mm_s * 60.0:.1f}"
+    return _join_lines(prefix, _axis_columns(program, start, stop) + [feed])
+
+
+def _reprap_chunks(program: MachineProgram):
+    g = program.profile.gcode
+    head = ["; " + s for s in _summary_comment(program, "", "")]
+    head += ["G21", "G90", "M82"]
+    if g.bed_temp_c is not None:
+        head += [f"M140 S{g.bed_temp_c:.0f}", f"M190 S{g.bed_temp_c:.0f}"]
+    if g.nozzle_temp_c is not None:
+        head += [f"M104 S{g.nozzle_temp_c:.0f}", f"M109 S{g.nozzle_temp_c:.0f}"]
+    head += [f"G92 {program.axis_letters[5]}0"] + list(g.header)
+    yield head
+    n = len(program)
+    for start in range(0, n, _CHUNK):
+        yield _reprap_body(program, start, min(start + _CHUNK, n))
+    yield ["M104 S0", "M140 S0"] + list(g.footer) + ["M84"]
+
+
+def linuxcnc_lines(program: MachineProgram) -> list[str]:
+    """RS274/NGC for LinuxCNC: G21 G90, G93 inverse-time feeds (or G94), filament on the A-like axis, M2."""
+    return [ln for chunk in _linuxcnc_chunks(program) for ln in chunk]
+
+
+def reprap_lines(program: MachineProgram) -> list[str]:
+    """RepRap/Marlin G-code: G21 G90 M82, absolute E, F in mm/min over the profile's feed basis."""
+    return [ln for chunk in _reprap_chunks(program) for ln in chunk]
+
+
+def gcode_lines(program: MachineProgram) -> list[str]:
+    """G-code lines in the profile's dialect."""
+    if program.profile.gcode.dialect == "linuxcnc":
+        return linuxcnc_lines(program)
+    return reprap_lines(program)
+
+
+def write_gcode(path: str | Path, program: MachineProgram) -> Path:
+    """Write the program as G-code in its profile's dialect (atomic)."""
+    chunks = _linuxcnc_chunks(program) if program.profile.gcode.dialect == "linuxcnc" else _reprap_chunks(program)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as fh:
+            for lines in chunks:
+                if lines:
+                    fh.write("\n".join(lines))
+                    fh.write("\n")
+    return Path(path)

@@ -1,0 +1,281 @@
+"""Curved layers: isosurfaces of G on the cage (marching tetrahedra), trimmed by H <= 0, in print order."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+from pydantic import BaseModel, Field
+
+# local edges of a tet and, per sign case (bit i set when vertex i has G >= c), its triangles as local edges
+TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+_EDGE_ID = {tuple(e): i for i, e in enumerate(TET_EDGES.tolist())}
+
+
+def _edge(a: int, b: int) -> int:
+    """Local edge index of the tet edge (a, b)."""
+    return _EDGE_ID[(min(a, b), max(a, b))]
+
+
+def _case_table() -> np.ndarray:
+    """Triangles (16, 2, 3) of local edge ids per sign case; -1 rows are unused."""
+    table = -np.ones((16, 2, 3), dtype=np.int64)
+    for case in range(1, 15):
+        above = [i for i in range(4) if case >> i & 1]
+        below = [i for i in range(4) if not case >> i & 1]
+        if len(above) == 1 or len(below) == 1:
+            lone = above[0] if len(above) == 1 else below[0]
+            others = [i for i in range(4) if i != lone]
+            table[case, 0] = [_edge(lone, o) for o in others]
+        else:
+            (a, b), (c, d) = above, below
+            quad = [_edge(a, c), _edge(a, d), _edge(b, d), _edge(b, c)]
+            table[case, 0] = [quad[0], quad[1], quad[2]]
+            table[case, 1] = [quad[0], quad[2], quad[3]]
+    return table
+
+
+CASES = _case_table()
+
+
+class LayerConfig(BaseModel):
+    """How layers are chosen and trimmed."""
+
+    layer_height: float = Field(0.8, gt=0, description="target layer thickness, mm")
+    t_min: float = Field(0.4, gt=0, description="smallest acceptable local thickness, mm")
+    t_max: float = Field(1.0, gt=0, description="largest acceptable local thickness, mm")
+    min_area: float = Field(0.5, ge=0, description="connected layer pieces smaller than this (mm^2) are dropped")
+    trim_iterations: int = Field(30, ge=1, description="bisection steps that put trimmed edges on H = 0")
+    thickness_samples: int = Field(20_000, ge=100, description="interior points used to measure layer thickness")
+
+
+@dataclass
+class Layers:
+    """Layers in print order: one triangle mesh each (faces oriented along +grad G), with their isovalues."""
+
+    meshes: list[trimesh.Trimesh]
+    isovalues: np.ndarray
+    report: dict = field(default_factory=dict)
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Concatenated vertices/faces/lpd with per-layer offsets, for the store."""
+        nv = np.cumsum([0] + [len(m.vertices) for m in self.meshes])
+        nf = np.cumsum([0] + [len(m.faces) for m in self.meshes])
+        empty3 = np.zeros((0, 3))
+        arrays = {
+            "vertices": np.concatenate([m.vertices for m in self.meshes]) if self.meshes else empty3,
+            "faces": np.concatenate([m.faces for m in self.meshes]).astype(np.int64) if self.meshes else empty3.astype(np.int64),
+            "lpd": np.concatenate([m.vertex_attributes["lpd"] for m in self.meshes]) if self.meshes else empty3,
+            "vertex_offsets": nv.astype(np.int64),
+            "face_offsets": nf.astype(np.int64),
+            "isovalues": np.asarray(self.isovalues, dtype=np.float64),
+        }
+        return arrays, {"n_layers": len(self.meshes), "report": self.report}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Layers:
+        """Rebuild from store arrays."""
+        nv, nf = arrays["vertex_offsets"], arrays["face_offsets"]
+        meshes = []
+        for i, iso in enumerate(arrays["isovalues"]):
+            m = trimesh.Trimesh(arrays["vertices"][nv[i] : nv[i + 1]], arrays["faces"][nf[i] : nf[i + 1]], process=False)
+            m.vertex_attributes["lpd"] = arrays["lpd"][nv[i] : nv[i + 1]]
+            m.metadata["isovalue"] = float(iso)
+            meshes.append(m)
+        return cls(meshes, arrays["isovalues"], attrs.get("report", {}))
+
+
+def tet_edges(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique edges (E,2) of a tet mesh and the global edge id of each tet's six local edges (m,6)."""
+    pairs = np.sort(tets[:, TET_EDGES].reshape(-1, 2), axis=1)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    return edges, inverse.reshape(-1, 6)
+
+
+def marching_tets(
+    vertices: np.ndarray, tets: np.ndarray, values: np.ndarray, iso: float, lpd: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Isosurface values = iso: vertices, faces oriented along +grad (lpd per tet), and the source tet of each face."""
+    edges, tet_edge = tet_edges(tets)
+    return _marching(vertices, tets, values, np.array([iso]), lpd, edges, tet_edge)[0]
+
+
+def _marching(
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    values: np.ndarray,
+    isovalues: np.ndarray,
+    lpd: np.ndarray,
+    edges: np.ndarray,
+    tet_edge: np.ndarray,
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Marching tetrahedra for several isovalues sharing the edge tables."""
+    tv = values[tets]
+    tmin, tmax = tv.min(axis=1), tv.max(axis=1)
+    out = []
+    for iso in isovalues:
+        active = np.flatnonzero((tmin < iso) & (tmax >= iso))
+        case = ((tv[active] >= iso) * (1 << np.arange(4))).sum(axis=1)
+        tri_local = CASES[case]  # (k,2,3)
+        valid = tri_local[:, :, 0] >= 0
+        tri_tet = np.repeat(active, 2).reshape(-1, 2)[valid]
+        tri_edges = np.take_along_axis(tet_edge[active][:, None, :].repeat(2, axis=1), tri_local.clip(0), axis=2)[valid]
+        used, inv = np.unique(tri_edges, return_inverse=True)
+        a, b = edges[used, 0], edges[used, 1]
+        fa, fb = values[a], values[b]
+        t = np.clip((iso - fa) / (fb - fa), 0.0, 1.0)
+        # a crossing exactly at a cage vertex is that vertex: merge, then drop the collapsed triangles
+        key = np.where(t <= 0, a, np.where(t >= 1, b, len(vertices) + used))
+        ukey, kinv = np.unique(key, return_inverse=True)
+        first = np.unique(kinv, return_index=True)[1]
+        pts = (vertices[a] * (1 - t)[:, None] + vertices[b] * t[:, None])[first]
+        faces = kinv[inv.reshape(-1, 3)]
+        nondegenerate = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+        faces, tri_tet = faces[nondegenerate], tri_tet[nondegenerate]
+        p = pts[faces]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        flip = np.einsum("ij,ij->i", normal, lpd[tri_tet]) < 0
+        faces[flip] = faces[flip][:, ::-1]
+        out.append((pts, faces, tri_tet))
+    return out
+
+
+def trim(
+    pts: np.ndarray, faces: np.ndarray, H: Callable[[np.ndarray], np.ndarray], iterations: int = 30
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Keep the part of a triangle mesh where H <= 0, splitting triangles on H = 0 (bisection on the edges)."""
+    h = H(pts)
+    inside = h <= 0
+    fin = inside[faces]
+    count = fin.sum(axis=1)
+    keep = faces[count == 3]
+    src = np.flatnonzero(count == 3)
+    mixed = np.flatnonzero((count == 1) | (count == 2))
+    if len(mixed) == 0:
+        return _compact(pts, keep, src)
+    mf = faces[mixed]
+    # rotate each mixed triangle so that vertex 0 is the lone one (inside for count 1, outside for count 2)
+    lone_inside = fin[mixed].sum(axis=1) == 1
+    lone = np.where(lone_inside[:, None], fin[mixed], ~fin[mixed]).argmax(axis=1)
+    roll = (np.arange(3)[None, :] + lone[:, None]) % 3
+    mf = np.take_along_axis(mf, roll, axis=1)
+    # crossing points on edges (0,1) and (0,2), shared between neighbours through a unique edge table
+    e = np.concatenate([np.sort(mf[:, [0, 1]], axis=1), np.sort(mf[:, [0, 2]], axis=1)])
+    ue, einv = np.unique(e, axis=0, return_inverse=True)
+    einv = einv.ravel()
+    ins = np.where(inside[ue[:, 0]], ue[:, 0], ue[:, 1])
+    out = np.where(inside[ue[:, 0]], ue[:, 1], ue[:, 0])
+    lo_p, hi_p = pts[ins].copy(), pts[out].copy()
+    for _ in range(iterations):
+        mid = 0.5 * (lo_p + hi_p)
+        m_in = H(mid) <= 0
+        lo_p[m_in] = mid[m_in]
+        hi_p[~m_in] = mid[~m_in]
+    cross = lo_p  # on the inside of H = 0 within 2^-iterations of the edge length
+    base = len(pts)
+    allpts = np.concatenate([pts, cross])
+    c01 = base + einv[: len(mixed)]
+    c02 = base + einv[len(mixed) :]
+    one = lone_inside
+    tri_a = np.stack([mf[one, 0], c01[one], c02[one]], axis=1)
+    two = ~one
+    tri_b = np.stack([c01[two], mf[two, 1], mf[two, 2]], axis=1)
+    tri_c = np.stack([c01[two], mf[two, 2], c02[two]], axis=1)
+    new_faces = np.concatenate([keep, tri_a, tri_b, tri_c])
+    new_src = np.concatenate([src, mixed[one], mixed[two], mixed[two]])
+    return _compact(allpts, new_faces, new_src)
+
+
+def _compact(pts: np.ndarray, faces: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop unreferenced vertices."""
+    used, inv = np.unique(faces, return_inverse=True)
+    return pts[used], inv.reshape(-1, 3).astype(np.int64), src
+
+
+def choose_isovalues(
+    g_points: np.ndarray, grad_norm: np.ndarray, config: LayerConfig
+) -> tuple[np.ndarray, dict]:
+    """Isovalues so that the local thickness dG/|grad G| at interior points stays in [t_min, t_max] as far as possible."""
+    order = np.argsort(g_points)
+    g, gn = g_points[order], grad_norm[order]
+    lo, hi = float(g[0]), float(g[-1])
+    isos = [lo + 0.5 * config.layer_height * float(np.median(gn))]
+    while isos[-1] < hi:
+        c = isos[-1]
+        i0, i1 = np.searchsorted(g, [c, c + 2 * config.t_max * float(gn.max())])
+        slab = gn[i0:max(i1, i0 + 1)] if i0 < len(g) else gn[-1:]
+        dg = config.layer_height * float(np.median(slab))
+        dg = max(dg, config.t_min * float(slab.max()))
+        dg = min(dg, config.t_max * float(slab.min()))
+        isos.append(c + max(dg, 1e-9))
+    isos = np.asarray(isos[:-1] if len(isos) > 1 and isos[-1] >= hi else isos)
+    # thickness of the slab each interior point lies in
+    slab_id = np.searchsorted(isos, g)
+    edges = np.concatenate([[lo], isos, [hi]])
+    dgs = edges[slab_id + 1] - edges[slab_id]
+    inner = (slab_id > 0) & (slab_id < len(isos))
+    thick = (dgs / gn)[inner] if inner.any() else dgs / gn
+    report = {
+        "thickness_min": float(thick.min()),
+        "thickness_median": float(np.median(thick)),
+        "thickness_max": float(thick.max()),
+        "fraction_outside_range": float(np.mean((thick < config.t_min - 1e-9) | (thick > config.t_max + 1e-9))),
+    }
+    return isos, report
+
+
+def extract_layers(
+    cage_vertices: np.ndarray,
+    cage_tets: np.ndarray,
+    G: np.ndarray,
+    lpd: np.ndarray,
+    H: Callable[[np.ndarray], np.ndarray],
+    isovalues: np.ndarray,
+    config: LayerConfig,
+    progress: Callable[[int, int], None] | None = None,
+) -> Layers:
+    """Isosurfaces of G at the isovalues, trimmed by H <= 0, small pieces dropped, in print order."""
+    edges, tet_edge = tet_edges(cage_tets)
+    meshes, kept_iso = [], []
+    dropped_pieces, dropped_area = 0, 0.0
+    for i, iso in enumerate(isovalues):
+        (pts, faces, src), = _marching(cage_vertices, cage_tets, G, np.array([iso]), lpd, edges, tet_edge)
+        if len(faces):
+            pts, faces, src = trim(pts, faces, H, config.trim_iterations)
+        if len(faces):
+            mesh = trimesh.Trimesh(pts, faces, process=False)
+            face_lpd = lpd[src]
+            vlpd = np.zeros_like(pts)
+            np.add.at(vlpd, faces.ravel(), np.repeat(face_lpd * mesh.area_faces[:, None], 3, axis=0))
+            vlpd /= np.maximum(np.linalg.norm(vlpd, axis=1, keepdims=True), 1e-300)
+            mesh.vertex_attributes["lpd"] = vlpd
+            mesh, n_drop, a_drop = _drop_small_pieces(mesh, config.min_area)
+            dropped_pieces += n_drop
+            dropped_area += a_drop
+            if len(mesh.faces):
+                mesh.metadata["isovalue"] = float(iso)
+                meshes.append(mesh)
+                kept_iso.append(float(iso))
+        if progress is not None:
+            progress(i + 1, len(isovalues))
+    report = {"dropped_pieces": int(dropped_pieces), "dropped_area_mm2": float(dropped_area)}
+    return Layers(meshes, np.asarray(kept_iso), report)
+
+
+def _drop_small_pieces(mesh: trimesh.Trimesh, min_area: float) -> tuple[trimesh.Trimesh, int, float]:
+    """Remove connected pieces whose area is below min_area."""
+    if min_area <= 0 or len(mesh.faces) == 0:
+        return mesh, 0, 0.0
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    area = np.bincount(labels, weights=mesh.area_faces)
+    small = area < min_area
+    if not small.any():
+        return mesh, 0, 0.0
+    keep = ~small[labels]
+    lpd = mesh.vertex_attributes["lpd"]
+    faces = mesh.faces[keep]
+    used, inv = np.unique(faces, return_inverse=True)
+    out = trimesh.Trimesh(mesh.vertices[used], inv.reshape(-1, 3), process=False)
+    out.vertex_attributes["lpd"] = lpd[used]
+    return out, int(small.sum()), float(area[small].sum())

@@ -1,0 +1,183 @@
+"""Nozzle collision checks against the printed part and the platform (build frame).
+
+The print head is a cone (apex at the tool tip, axis along the tool axis, half angle and length
+from the profile) topped by a holder cylinder. The printed material is represented by the
+waypoints of all *previous* layers (points on the top surfaces of the deposited beads), kept in
+a log-structured set of KD-trees (Bentley-Saxe: O(log L) trees, amortised O(N log N) building).
+For every waypoint, the material points inside two balls (one enclosing the cone above
+``min_height``, one enclosing the holder) are fetched from the trees (counted first in C, so poses
+with nothing nearby cost one query each) and tested exactly against the cone and the cylinder.
+On a part printed bottom-up the previous layers lie below the tip and outside both balls, so
+the check costs about two ball counts per waypoint.
+The platform test is exact: the lowest point of the cone and of the holder against z = platform_z.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from neuralslicer.motion.profile import Nozzle
+from neuralslicer.toolpath.types import Toolpaths
+from neuralslicer.types import BoolArray, FloatArray, IndexArray
+
+PART, PLATFORM = 0, 1
+
+
+@dataclass
+class CollisionReport:
+    """Collisions found: waypoint indices, a colliding location each, and the kind (PART/PLATFORM)."""
+
+    indices: IndexArray
+    locations: FloatArray
+    kind: np.ndarray
+
+    @property
+    def count(self) -> int:
+        """Number of colliding waypoints."""
+        return int(len(self.indices))
+
+    def summary(self) -> dict:
+        """JSON-able counts."""
+        return {"n_collisions": self.count, "n_part_collisions": int((self.kind == PART).sum()),
+                "n_platform_collisions": int((self.kind == PLATFORM).sum()),
+                "first_collision_waypoints": [int(i) for i in self.indices[:20]]}
+
+
+def _inside_head(d: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: float) -> BoolArray:
+    """Exact membership of offsets ``d = point - tip`` (k,3) in the head along ``axis`` (k,3)."""
+    h = np.einsum("ij,ij->i", d, axis)
+    radial = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
+    L = nozzle.cone_length
+    cone = (h >= min_height) & (h <= L) & (radial <= h * np.tan(np.radians(nozzle.cone_half_angle_deg)))
+    holder = (h > L) & (h <= L + nozzle.holder_length) & (radial <= nozzle.holder_radius)
+    return cone | holder
+
+
+def head_parts(nozzle: Nozzle, min_height: float) -> list[tuple[float, float]]:
+    """(height of the centre on the axis, radius) of balls enclosing the cone part and the holder."""
+    L = nozzle.cone_length
+    h0 = min(max(min_height, 0.0), L)
+    ta = np.tan(np.radians(nozzle.cone_half_angle_deg))
+    # cone frustum from h0 to L: the centre c on the axis that balances the lower and upper rims
+    r0, r1 = h0 * ta, L * ta
+    c = float(np.clip((L * L + r1 * r1 - h0 * h0 - r0 * r0) / (2 * (L - h0) + 1e-300), h0, L))
+    parts = [(c, float(max(np.hypot(c - h0, r0), np.hypot(L - c, r1))))]
+    if nozzle.holder_length > 0:
+        parts.append((L + 0.5 * nozzle.holder_length, float(np.hypot(0.5 * nozzle.holder_length,
+                                                                        nozzle.holder_radius))))
+    return parts
+
+
+def platform_clearance(xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, platform_z: float) -> FloatArray:
+    """Height of the lowest point of the head above the platform, per waypoint (n,) (exact)."""
+    az = np.clip(axis[:, 2], -1.0, 1.0)
+    horiz = np.sqrt(np.maximum(0.0, 1.0 - az ** 2))
+    L, ta = nozzle.cone_length, np.tan(np.radians(nozzle.cone_half_angle_deg))
+    cone_base_low = L * az - L * ta * horiz
+    low = np.minimum(0.0, cone_base_low)
+    if nozzle.holder_length > 0:
+        for h in (L, L + nozzle.holder_length):
+            low = np.minimum(low, h * az - nozzle.holder_radius * horiz)
+    return xyz[:, 2] + low - platform_z
+
+
+class _TreeSet:
+    """Points added in batches, queried as a union (Bentley-Saxe logarithmic method)."""
+
+    def __init__(self) -> None:
+        self.blocks: list[tuple[FloatArray, cKDTree]] = []
+
+    def add(self, pts: FloatArray) -> None:
+        """Add a batch of points (k, 3), merging blocks of similar size."""
+        if len(pts) == 0:
+            return
+        while self.blocks and len(self.blocks[-1][0]) <= len(pts):
+            pts = np.concatenate([self.blocks.pop()[0], pts])
+        self.blocks.append((pts, cKDTree(pts)))
+
+
+def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: float,
+               budget: int = 2_000_000) -> tuple[BoolArray, FloatArray]:
+    """Exact test of material points against the head at each pose, candidates from ball queries."""
+    hit = np.zeros(len(xyz), bool)
+    loc = np.zeros((len(xyz), 3))
+    if not material.blocks or len(xyz) == 0:
+        return hit, loc
+    for hc, rc in head_parts(nozzle, min_height):
+        centres = xyz + hc * axis
+        for pts, tree in material.blocks:
+            todo = np.flatnonzero(~hit)
+            if len(todo) == 0:
+                return hit, loc
+            counts = tree.query_ball_point(centres[todo], rc, return_length=True)
+            todo, counts = todo[counts > 0], counts[counts > 0]
+            # chunks of poses with a bounded number of candidate pairs
+            bounds = np.searchsorted(np.cumsum(counts), np.arange(budget, counts.sum() + budget, budget))
+            start = 0
+            for stop in np.unique(np.concatenate([bounds + 1, [len(todo)]])):
+                stop = int(min(max(stop, start + 1), len(todo)))
+                if stop <= start:
+                    continue
+                ids = todo[start:stop]
+                lists = tree.query_ball_point(centres[ids], rc)
+                n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+                cand = np.fromiter((j for x in lists for j in x), np.int64, int(n_c.sum()))
+                pose = np.repeat(ids, n_c)
+                inside = _inside_head(pts[cand] - xyz[pose], axis[pose], nozzle, min_height)
+                hp, hq = pose[inside], cand[inside]
+                first = np.unique(hp, return_index=True)[1]
+                new = ~hit[hp[first]]
+                hit[hp[first][new]] = True
+                loc[hp[first][new]] = pts[hq[first][new]]
+                start = stop
+    return hit, loc
+
+
+def head_collisions(xyz: FloatArray, axis: FloatArray, material: FloatArray, nozzle: Nozzle,
+                    min_height: float = 0.5) -> tuple[BoolArray, FloatArray]:
+    """Which tool poses (n,3)+(n,3) have material points (k,3) inside the head, and one such point."""
+    tree = _TreeSet()
+    tree.add(np.asarray(material, np.float64).reshape(-1, 3))
+    return _head_hits(tree, np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(axis, np.float64).reshape(-1, 3),
+                      nozzle, min_height)
+
+
+def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_height: float | None = None,
+                     platform_tolerance: float = 1e-6) -> CollisionReport:
+    """Waypoints where the head hits earlier layers' material or the platform (see module doc).
+
+    min_height : material closer than this to the tip along the axis is ignored (default: the
+    largest line width, at least 0.3 mm), so the beads touching the nozzle are not counted.
+    """
+    n = len(tp)
+    if n == 0:
+        return CollisionReport(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int8))
+    if min_height is None:
+        min_height = max(0.3, float(tp.width.max(initial=0.0)))
+    hit = np.zeros(n, bool)
+    loc = np.zeros((n, 3))
+    kind = np.zeros(n, np.int8)
+    # platform (exact)
+    clear = platform_clearance(tp.xyz, tp.axis, nozzle, platform_z)
+    plat = clear < -platform_tolerance
+    hit |= plat
+    loc[plat] = np.c_[tp.xyz[plat, :2], np.full(int(plat.sum()), platform_z)]
+    kind[plat] = PLATFORM
+    # part: material of previous layers
+    order = np.argsort(tp.layer, kind="stable")
+    layers = tp.layer[order]
+    bounds = np.flatnonzero(np.diff(layers)) + 1
+    material = _TreeSet()
+    for grp in np.split(order, bounds):
+        if material.blocks:
+            g_hit, g_loc = _head_hits(material, tp.xyz[grp], tp.axis[grp], nozzle, min_height)
+            new = g_hit & ~hit[grp]
+            hit[grp[new]] = True
+            loc[grp[new]] = g_loc[new]
+            kind[grp[new]] = PART
+        on_layer = grp[tp.path[grp] >= 0]
+        material.add(tp.xyz[on_layer])
+    idx = np.flatnonzero(hit)
+    return CollisionReport(idx.astype(np.int64), loc[idx], kind[idx])

@@ -1,0 +1,84 @@
+"""One entry point from curved layers to machine programs and files (SPEC steps 11-12)."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import trimesh
+
+from neuralslicer.motion.collision import check_collisions
+from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
+from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.toolpath.config import ToolpathConfig
+from neuralslicer.toolpath.generate import toolpaths
+from neuralslicer.toolpath.io import atomic_path, plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
+from neuralslicer.toolpath.types import Toolpaths
+
+
+def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
+               solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
+               toolpath_cfg: ToolpathConfig | None = None,
+               profile: MachineProfile | str | None = None) -> tuple[Toolpaths, MachineProgram, dict]:
+    """Toolpaths, machine program and metrics for curved layers in print order.
+
+    layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
+    platform_z : platform height; solid_H : optional implicit solid (H < 0 inside) used to count
+    waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a YAML path
+    (default ``table_bc_linuxcnc``). Metrics: estimated_print_time_s, toolpath_length_mm,
+    n_waypoints, material_mm3, collisions, rotary statistics, timings.
+    """
+    if profile is None or isinstance(profile, (str, Path)):
+        profile = load_profile(profile or "table_bc_linuxcnc")
+    cfg = toolpath_cfg or ToolpathConfig()
+    t0 = time.perf_counter()
+    tp = toolpaths(layers, platform_z=platform_z, config=cfg)
+    t1 = time.perf_counter()
+    program = plan_motion(tp, profile, platform_z=platform_z)
+    t2 = time.perf_counter()
+    report = check_collisions(tp, profile.nozzle, platform_z)
+    t3 = time.perf_counter()
+    metrics = program_metrics(program)
+    metrics["n_waypoints"] = len(tp)
+    metrics["n_layers"] = tp.n_layers
+    metrics["n_paths"] = int(tp.attrs.get("n_paths", 0))
+    metrics.update(report.summary())
+    metrics.update({k: v for k, v in program.attrs.items() if k != "platform_z"})
+    on = tp.path >= 0
+    metrics["thickness_mm"] = {"min": float(tp.thickness[on].min()), "mean": float(tp.thickness[on].mean()),
+                               "max": float(tp.thickness[on].max())}
+    if solid_H is not None:
+        h = np.asarray(solid_H(tp.xyz[on & tp.extrude]), np.float64)
+        metrics["n_waypoints_outside_solid"] = int((h > 1e-3).sum())
+        metrics["max_H_at_waypoints"] = float(h.max(initial=-np.inf))
+    metrics["timings_s"] = {"toolpaths": t1 - t0, "motion": t2 - t1, "collisions": t3 - t2}
+    tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
+    return tp, program, metrics
+
+
+def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
+                        *, robot: bool = False, vtp: bool = True, png: bool = True) -> dict[str, Path]:
+    """Write ``toolpaths/waypoints.csv``, ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
+    ``robot_waypoints.csv``/``.json`` (if ``robot``) and ``print_metrics.json`` under ``out_dir``."""
+    from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
+    from neuralslicer.gcode.writers import write_gcode
+
+    out = Path(out_dir)
+    files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp),
+             "gcode": write_gcode(out / "print.gcode", program)}
+    if vtp:
+        files["vtp"] = write_toolpaths_vtp(out / "toolpaths.vtp", tp)
+    if png:
+        files["png"] = plot_toolpaths_png(out / "toolpaths.png", tp)
+    if robot:
+        d = program.profile.extrusion.filament_diameter
+        files["robot_csv"] = write_robot_csv(out / "robot_waypoints.csv", tp, d)
+        files["robot_json"] = write_robot_json(out / "robot_waypoints.json", tp, d)
+    if metrics is not None:
+        p = out / "print_metrics.json"
+        with atomic_path(p) as tmp:
+            tmp.write_text(json.dumps(metrics, indent=2, default=float))
+        files["metrics"] = p
+    return files

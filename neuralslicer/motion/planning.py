@@ -1,0 +1,209 @@
+"""Motion planning (SPEC step 12): machine coordinates, rotary splitting, feeds, extrusion, retraction."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from neuralslicer.motion.kinematics import forward_kinematics, inverse_kinematics, machine_position
+from neuralslicer.motion.profile import MachineProfile
+from neuralslicer.toolpath.types import Toolpaths
+from neuralslicer.types import FloatArray, IndexArray
+
+PROGRAM_SCHEMA_VERSION = 1
+#: move kinds
+TRAVEL, PRINT, RETRACT = 0, 1, 2
+_ARRAYS = ("machine", "extruder", "time_s", "kind", "source", "layer", "part_xyz", "part_axis")
+
+
+@dataclass
+class MachineProgram:
+    """Moves of a table-table B/C printer, in execution order.
+
+    machine : (n, 5) float64 X, Y, Z (mm), B, C (deg, C unwrapped) at the end of each move;
+    extruder : (n,) absolute filament position (mm) at the end of each move;
+    time_s : (n,) planned duration of each move; kind : (n,) int8 TRAVEL/PRINT/RETRACT (RETRACT:
+    extruder-only moves, retraction < 0 or prime > 0); source : (n,) int64 toolpath waypoint index
+    reached by the move, -1 for inserted moves (rotary splitting, retract/prime, approach);
+    layer : (n,) int64; part_xyz / part_axis : (n, 3) the tool tip and tool axis in the build frame
+    the move is meant to reach (forward kinematics of ``machine`` reproduces them).
+    """
+
+    machine: FloatArray
+    extruder: FloatArray
+    time_s: FloatArray
+    kind: np.ndarray
+    source: IndexArray
+    layer: IndexArray
+    part_xyz: FloatArray
+    part_axis: FloatArray
+    part_offset: FloatArray
+    profile: MachineProfile
+    attrs: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        """Number of moves."""
+        return int(len(self.machine))
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Store-able form: (arrays, JSON attrs incl. the profile) for one zarr group."""
+        arrays = {k: np.ascontiguousarray(getattr(self, k)) for k in _ARRAYS}
+        attrs = {"schema_version": PROGRAM_SCHEMA_VERSION, "units": "mm, deg, s",
+                 "axes": list(self.axis_letters), "part_offset": [float(v) for v in self.part_offset],
+                 "profile": self.profile.model_dump(mode="json"), **self.attrs}
+        return arrays, attrs
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> "MachineProgram":
+        """Inverse of ``to_arrays``."""
+        attrs = dict(attrs)
+        profile = MachineProfile.model_validate(attrs.pop("profile"))
+        offset = np.asarray(attrs.pop("part_offset"), np.float64)
+        for k in ("schema_version", "units", "axes"):
+            attrs.pop(k, None)
+        kw = {k: np.asarray(arrays[k]) for k in _ARRAYS}
+        return cls(**kw, part_offset=offset, profile=profile, attrs=attrs)
+
+    @property
+    def axis_letters(self) -> tuple[str, ...]:
+        """G-code letters of X, Y, Z, B, C and the extruder."""
+        a = self.profile.axes
+        return (a.x, a.y, a.z, a.tilt, a.rotate, a.extruder)
+
+    def forward(self) -> tuple[FloatArray, FloatArray]:
+        """Forward kinematics of all moves: tool tip and tool axis in the build frame."""
+        return forward_kinematics(self.machine[:, :3], self.machine[:, 3], self.machine[:, 4],
+                                  self.profile.kinematics, self.part_offset)
+
+
+def auto_part_offset(tp: Toolpaths, platform_z: float) -> FloatArray:
+    """Default placement: the part's xy centre on the C axis and the platform on the table (z = 0)."""
+    if len(tp) == 0:
+        return np.array([0.0, 0.0, -platform_z])
+    lo, hi = tp.xyz.min(axis=0), tp.xyz.max(axis=0)
+    c = 0.5 * (lo + hi)
+    return np.array([-c[0], -c[1], -platform_z])
+
+
+def filament_area(profile: MachineProfile) -> float:
+    """Filament cross-section (mm^2)."""
+    return float(np.pi * 0.25 * profile.extrusion.filament_diameter ** 2)
+
+
+def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None = None) -> MachineProgram:
+    """Machine program for toolpaths: IK with continuous B/C, rotary splitting, feeds, extrusion.
+
+    Extrusion per print move = flow * mean thickness * mean width * length / filament area (mm of
+    filament); travels longer than ``extrusion.retract_min_travel`` retract before and prime after.
+    Move durations: length / speed (print, first-layer or travel speed), at least the rotary change
+    divided by ``feeds.rotary_deg_s``.
+    """
+    kin = profile.kinematics
+    pz = float(platform_z if platform_z is not None else tp.attrs.get("platform_z", 0.0))
+    offset = (np.asarray(kin.part_offset, np.float64) if kin.part_offset is not None
+              else auto_part_offset(tp, pz))
+    n = len(tp)
+    # approach: start above the first waypoint along its tool axis
+    lift = float(tp.attrs.get("config", {}).get("travel_lift", 1.0)) or 1.0
+    xyz = np.concatenate([tp.xyz[:1] + lift * tp.axis[:1], tp.xyz])
+    axis = np.concatenate([tp.axis[:1], tp.axis])
+    layer = np.concatenate([tp.layer[:1], tp.layer])
+    extrude = np.concatenate([[False], tp.extrude])
+    source = np.concatenate([[-1], np.arange(n)])
+    thick = np.concatenate([tp.thickness[:1], tp.thickness])
+    width = np.concatenate([tp.width[:1], tp.width])
+    b, c, singular, out = inverse_kinematics(axis, kin)
+    m = len(xyz)
+    # per arriving move: length, filament, duration
+    seg = np.zeros(m)
+    seg[1:] = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    area = filament_area(profile)
+    de = np.zeros(m)
+    t_mean = np.zeros(m)
+    w_mean = np.zeros(m)
+    t_mean[1:] = 0.5 * (thick[1:] + thick[:-1])
+    w_mean[1:] = 0.5 * (width[1:] + width[:-1])
+    de = np.where(extrude, profile.extrusion.flow * t_mean * w_mean * seg / area, 0.0)
+    f = profile.feeds
+    speed = np.where(extrude, np.where(layer == layer.min(initial=0), f.first_layer_mm_s, f.print_mm_s),
+                     f.travel_mm_s)
+    drot = np.zeros(m)
+    drot[1:] = np.maximum(np.abs(np.diff(b)), np.abs(np.diff(c)))
+    dt = np.maximum(seg / speed, drot / f.rotary_deg_s)
+    # split moves whose rotary change exceeds the maximal step (linear in part xyz and in B, C)
+    nsub = np.maximum(1, np.ceil(drot / kin.max_rotary_step_deg - 1e-9)).astype(np.int64)
+    nsub[0] = 1
+    rep = np.repeat(np.arange(m), nsub)
+    k = np.arange(len(rep)) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 1
+    frac = k / nsub[rep]
+    prev = np.maximum(rep - 1, 0)
+    lerp = lambda a: a[prev] + (a[rep] - a[prev]) * (frac if a.ndim == 1 else frac[:, None])  # noqa: E731
+    e_xyz, e_b, e_c = lerp(xyz), lerp(b), lerp(c)
+    e_de = de[rep] / nsub[rep]
+    e_dt = dt[rep] / nsub[rep]
+    e_kind = np.where(extrude[rep], PRINT, TRAVEL).astype(np.int8)
+    e_src = np.where(k == nsub[rep], source[rep], -1)
+    e_layer = layer[rep]
+    # retract before / prime after travel runs longer than retract_min_travel
+    ex = profile.extrusion
+    e_len = np.linalg.norm(np.diff(e_xyz, axis=0, prepend=e_xyz[:1]), axis=1)
+    trav = e_kind == TRAVEL
+    starts = np.flatnonzero(trav & ~np.concatenate([[False], trav[:-1]]))
+    ends = np.flatnonzero(trav & ~np.concatenate([trav[1:], [False]]))
+    cum = np.concatenate([[0.0], np.cumsum(np.where(trav, e_len, 0.0))])
+    run_len = cum[ends + 1] - cum[starts]
+    do = (run_len > ex.retract_min_travel) & (starts > 0) & (ex.retract_mm > 0 or ex.prime_mm > 0)
+    r_at, p_at = starts[do], ends[do]
+    ins_idx = np.concatenate([r_at, p_at + 1])            # insert before these indices
+    ins_from = np.concatenate([r_at - 1, p_at])           # copy pose of this move
+    ins_de = np.concatenate([np.full(len(r_at), -ex.retract_mm), np.full(len(p_at), ex.prime_mm)])
+    ins_dt = np.concatenate([np.full(len(r_at), ex.retract_mm), np.full(len(p_at), ex.prime_mm)]) / f.retract_mm_s
+    order = np.argsort(ins_idx, kind="stable")
+    ins_idx, ins_from, ins_de, ins_dt = ins_idx[order], ins_from[order], ins_de[order], ins_dt[order]
+    ins = lambda a, v: np.insert(a, ins_idx, v, axis=0)  # noqa: E731
+    e_xyz = ins(e_xyz, e_xyz[ins_from])
+    e_b, e_c = ins(e_b, e_b[ins_from]), ins(e_c, e_c[ins_from])
+    e_de = ins(e_de, ins_de)
+    e_dt = ins(e_dt, np.maximum(ins_dt, 1e-3))
+    e_kind = ins(e_kind, RETRACT)
+    e_src = ins(e_src, -1)
+    e_layer = ins(e_layer, e_layer[ins_from])
+    e_dt[0] = 0.0
+    mxyz = machine_position(e_xyz, e_b, e_c, kin, offset)
+    machine = np.column_stack([mxyz, e_b, e_c])
+    br, cr = np.radians(e_b), np.radians(e_c)
+    a_fk = np.stack([-np.cos(cr) * np.sin(br), np.sin(cr) * np.sin(br), np.cos(br)], axis=1)  # FK tool axis
+    program = MachineProgram(machine=machine, extruder=np.cumsum(e_de), time_s=e_dt, kind=e_kind,
+                             source=e_src.astype(np.int64), layer=e_layer.astype(np.int64),
+                             part_xyz=e_xyz, part_axis=a_fk, part_offset=offset, profile=profile)
+    b_all = machine[:, 3]
+    program.attrs = {
+        "platform_z": pz,
+        "n_singular": int(singular.sum()),
+        "n_rotary_out_of_range": int(out.sum()),
+        "n_inserted_rotary": int(len(rep) - m),
+        "n_retractions": int(len(r_at)),
+        "max_rotary_step_deg": float(np.max(np.abs(np.diff(machine[:, 3:5], axis=0)), initial=0.0)),
+        "b_range_deg": [float(b_all.min()), float(b_all.max())],
+        "c_range_deg": [float(machine[:, 4].min()), float(machine[:, 4].max())],
+    }
+    return program
+
+
+def program_metrics(program: MachineProgram) -> dict:
+    """Totals of a program: time, path length, waypoints, material, filament."""
+    xyz = program.part_xyz
+    seg = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    kind = program.kind[1:]
+    de = np.diff(program.extruder)
+    area = filament_area(program.profile)
+    material = float(de[kind == PRINT].sum() * area / program.profile.extrusion.flow)
+    return {
+        "estimated_print_time_s": float(program.time_s.sum()),
+        "toolpath_length_mm": float(seg[kind == PRINT].sum()),
+        "travel_length_mm": float(seg[kind == TRAVEL].sum()),
+        "n_moves": len(program),
+        "n_waypoints": int((program.source >= 0).sum()),
+        "material_mm3": material,
+        "filament_mm": float(de[kind == PRINT].sum()),
+    }

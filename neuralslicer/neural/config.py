@@ -1,0 +1,125 @@
+"""Configuration of the neural optimisation (SPEC steps 5-9), with documented defaults."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class NetworkConfig(BaseModel):
+    """SIREN size and initialisation for the quaternion and scale networks."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    hidden_layers: int = Field(3, ge=1, description="number of hidden sine layers")
+    hidden_features: int = Field(64, ge=4, description="neurons per hidden layer")
+    omega_0: float = Field(30.0, gt=0, description="SIREN frequency of the first layer (Sitzmann)")
+    omega_hidden: float = Field(30.0, gt=0, description="SIREN frequency of hidden layers")
+    max_scale: float = Field(
+        5.0, gt=1, description="scale ratios are bounded to [1/max_scale, max_scale]"
+    )
+
+
+#: Network presets: ``default`` converges well on a CPU; ``paper`` is the published 10 x 512.
+NETWORK_PRESETS: dict[str, NetworkConfig] = {
+    "default": NetworkConfig(),
+    "paper": NetworkConfig(hidden_layers=10, hidden_features=512),
+    "small": NetworkConfig(hidden_layers=2, hidden_features=32),
+}
+
+
+class DeformationConfig(BaseModel):
+    """Scale-controlled ARAP deformation of the cage (SPEC step 6)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    gamma: float = Field(1e-4, gt=0, description="weight of the regularisation sum |v^d - v|^2")
+    pin_platform: bool = Field(
+        False,
+        description="keep the height of cage vertices at/below the platform (hard, by elimination)",
+    )
+    platform_tolerance: float = Field(
+        0.0, ge=0, description="mm above the platform still counted as 'on the platform'"
+    )
+    solver: Literal["auto", "cholmod", "splu"] = Field(
+        "auto", description="sparse factorisation: CHOLMOD (scikit-sparse) when present, else SuperLU"
+    )
+
+
+class LossConfig(BaseModel):
+    """Loss weights and parameters (SPEC step 8); every term is normalised by its sample weight."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    w_sf: float = Field(1.0, ge=0, description="support-free (surface normal) weight")
+    w_sr: float = Field(0.0, ge=0, description="strength-reinforcement weight")
+    w_po: float = Field(1.0, ge=0, description="point-overhang weight")
+    w_hs: float = Field(1.0, ge=0, description="harmonic weight on scale ratios")
+    w_hq: float = Field(1.0, ge=0, description="harmonic weight on quaternions")
+    alpha_deg: float = Field(45.0, gt=0, lt=90, description="self-supporting angle alpha")
+    beta_deg: float = Field(10.0, gt=0, lt=90, description="strength tolerance beta")
+    k_sf: float = Field(30.0, gt=0, description="logistic growth rate of L_SF")
+    k_sr: float = Field(15.0, gt=0, description="logistic growth rate of L_SR")
+    collision: bool = Field(True, description="enforce L_CA = 0 by a DC3-style correction")
+    phi_deg: float = Field(120.0, gt=0, lt=180, description="printer-head cone apex angle phi")
+    correction_steps: int = Field(3, ge=0, description="max correction steps per iteration")
+    correction_lr: float = Field(
+        1.0, gt=0, description="fraction of the first-order step to L_CA = 0 (L_CA/|grad|^2 grad)"
+    )
+    correction_tol: float = Field(0.0, ge=0, description="L_CA below this counts as feasible")
+
+
+class OptimConfig(BaseModel):
+    """Adam + ReduceLROnPlateau, budget and convergence test (SPEC step 8)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    lr: float = Field(1e-3, gt=0, description="initial Adam learning rate")
+    min_lr: float = Field(1e-6, gt=0, description="ReduceLROnPlateau floor")
+    plateau_factor: float = Field(0.5, gt=0, lt=1, description="ReduceLROnPlateau factor")
+    plateau_patience: int = Field(30, ge=1, description="ReduceLROnPlateau patience (steps)")
+    max_steps: int = Field(800, ge=0, description="step budget")
+    convergence_window: int = Field(100, ge=2, description="steps compared by the stop test")
+    convergence_rtol: float = Field(
+        1e-3, ge=0, description="stop when the best loss improved less than this over the window"
+    )
+    checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")
+    seed: int = Field(0, description="seed of torch, numpy and python RNGs")
+
+
+class InitConfig(BaseModel):
+    """Initial guess (SPEC step 9) and its pre-training."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["height", "heat", "user"] = Field("height", description="initial field")
+    pretrain_steps: int = Field(300, ge=0, description="Adam steps fitting G to the field (MSE)")
+    pretrain_lr: float = Field(1e-3, gt=0, description="learning rate of the pre-training")
+    heat_time_factor: float = Field(1.0, gt=0, description="heat time t = factor * h^2")
+
+
+class NeuralConfig(BaseModel):
+    """Everything the neural optimisation needs besides the geometry."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    network: str | NetworkConfig = Field("default", description="preset name or explicit size")
+    deformation: DeformationConfig = Field(default_factory=DeformationConfig)
+    loss: LossConfig = Field(default_factory=LossConfig)
+    optim: OptimConfig = Field(default_factory=OptimConfig)
+    init: InitConfig = Field(default_factory=InitConfig)
+    device: str = Field("auto", description="'auto' (CUDA if available), 'cpu', 'cuda', 'cuda:1'")
+    dtype: Literal["float32", "float64"] = Field("float32", description="network/loss precision")
+
+    def network_config(self) -> NetworkConfig:
+        """The resolved network size (preset names looked up in NETWORK_PRESETS)."""
+        if isinstance(self.network, NetworkConfig):
+            return self.network
+        if self.network not in NETWORK_PRESETS:
+            from neuralslicer.errors import InputError
+
+            raise InputError(
+                "neural.network",
+                f"unknown preset {self.network!r}; expected one of {', '.join(NETWORK_PRESETS)}",
+            )
+        return NETWORK_PRESETS[self.network]

@@ -1,0 +1,106 @@
+"""Loss terms of SPEC step 8, each normalised by the total weight of its sample set.
+
+All functions take torch tensors and are differentiable w.r.t. the LPDs / network outputs:
+
+- ``L_SF = sum_B |A_p| sigma(k_SF (-n.d - sin a)) / sum_B |A_p|``
+- ``L_SR = sum_T |V_e| sigma(k_SR (|d.tau| - sin b)) / sum_T |V_e|``
+- ``L_PO = sum_B |A_p| max(0, min_{j in N_p} (p_j - p).d) / (sum_B |A_p| * h)`` with h the mean
+  distance from a sample to its k nearest samples (makes L_PO unit-free)
+- ``L_HS = sum_pairs w_ij |s_i - s_j|^2 / sum_pairs w_ij``, ``w_ij = (|V_i| + |V_j|) / 2``
+- ``L_HQ = sum_pairs w_ij (1 - q_i.q_j)^2 / sum_pairs w_ij`` (q unit)
+- ``L_CA`` (see :func:`collision_loss`), mean over adjacent tet pairs.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def _normalised_sum(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """sum w v / sum w (0 when there are no samples)."""
+    if values.numel() == 0:
+        return weights.new_zeros(())
+    return (weights * values).sum() / weights.sum().clamp_min(1e-300)
+
+
+def support_free_loss(
+    lpd: torch.Tensor, normals: torch.Tensor, areas: torch.Tensor, alpha: float, k: float
+) -> torch.Tensor:
+    """L_SF for LPDs d_p (n,3), outward normals (n,3), weights |A_p| (n,); alpha in radians."""
+    overhang = -(normals * lpd).sum(dim=1) - math.sin(alpha)
+    return _normalised_sum(torch.sigmoid(k * overhang), areas)
+
+
+def strength_loss(
+    lpd: torch.Tensor, tau: torch.Tensor, volumes: torch.Tensor, beta: float, k: float
+) -> torch.Tensor:
+    """L_SR for LPDs (n,3), unit max-stress directions (n,3), voxel volumes (n,); beta in radians."""
+    x = (lpd * tau).sum(dim=1).abs() - math.sin(beta)
+    return _normalised_sum(torch.sigmoid(k * x), volumes)
+
+
+def point_overhang_loss(
+    lpd: torch.Tensor,
+    points: torch.Tensor,
+    neighbours: torch.Tensor,
+    all_points: torch.Tensor,
+    areas: torch.Tensor,
+    length: float,
+) -> torch.Tensor:
+    """L_PO for samples p (n,3) with LPDs (n,3), neighbour ids (n,k) into all_points, weights (n,)."""
+    diff = all_points[neighbours] - points[:, None, :]  # (n,k,3)
+    proj = torch.einsum("nkj,nj->nk", diff, lpd)
+    return _normalised_sum(torch.relu(proj.min(dim=1).values), areas) / length
+
+
+def harmonic_scale_loss(
+    scales: torch.Tensor, pairs: torch.Tensor, pair_weights: torch.Tensor
+) -> torch.Tensor:
+    """L_HS for per-element scale ratios (m,3), adjacent pairs (k,2), weights (|V_i|+|V_j|)/2."""
+    diff = scales[pairs[:, 0]] - scales[pairs[:, 1]]
+    return _normalised_sum((diff * diff).sum(dim=1), pair_weights)
+
+
+def harmonic_quaternion_loss(
+    quaternions: torch.Tensor, pairs: torch.Tensor, pair_weights: torch.Tensor
+) -> torch.Tensor:
+    """L_HQ for per-element unit quaternions (m,4), adjacent pairs (k,2), pair weights (k,)."""
+    dot = (quaternions[pairs[:, 0]] * quaternions[pairs[:, 1]]).sum(dim=1)
+    return _normalised_sum((1.0 - dot) ** 2, pair_weights)
+
+
+def crease_concavity(
+    gradients: torch.Tensor, pairs: torch.Tensor, face_normals: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n_L x n_R).h and n_L.n_R per adjacent pair, > 0 where the isosurface has a valley.
+
+    ``n = grad G / |grad G|`` per tet; ``h`` is the unit isoline direction of G on the shared face,
+    ``h = f x t / |f x t|`` with ``f`` the face normal from L into R and ``t`` the in-face gradient.
+    With this orientation ``(n_L x n_R).h = sin(theta) sign``: positive in a concave crease (a
+    valley seen from the side where G grows, where the nozzle is), negative in a convex one.
+    """
+    gl, gr = gradients[pairs[:, 0]], gradients[pairs[:, 1]]
+    nl, nr = gl / gl.norm(dim=1, keepdim=True).clamp_min(1e-12), gr / gr.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    g_mean = 0.5 * (gl + gr)  # tangential part is shared by both sides for a continuous G
+    t = g_mean - (g_mean * face_normals).sum(dim=1, keepdim=True) * face_normals
+    h = torch.linalg.cross(face_normals, t, dim=1)
+    h = h / h.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    x = (torch.linalg.cross(nl, nr, dim=1) * h).sum(dim=1)
+    return x, (nl * nr).sum(dim=1)
+
+
+def collision_loss(
+    gradients: torch.Tensor, pairs: torch.Tensor, face_normals: torch.Tensor, phi: float
+) -> torch.Tensor:
+    """L_CA: mean over adjacent pairs of max(0, theta - (pi - phi)) in concave creases.
+
+    ``theta = atan2((n_L x n_R).h, n_L.n_R)`` is the signed kink between the isosurface normals
+    (positive in a valley). A cone of apex angle ``phi`` touches the bottom of a valley without
+    gouging iff the valley's opening angle ``pi - theta`` is at least ``phi``.
+    """
+    if pairs.numel() == 0:
+        return gradients.new_zeros(())
+    x, c = crease_concavity(gradients, pairs, face_normals)
+    theta = torch.atan2(x, c)
+    return torch.relu(theta - (math.pi - phi)).mean()

@@ -1,0 +1,74 @@
+"""Toolpath settings (SPEC step 11), loaded from YAML; every default is documented here."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from neuralslicer.errors import InputError
+
+
+class ToolpathConfig(BaseModel):
+    """How curved layers are filled with extrusion paths (all lengths in mm)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    #: nozzle line width; shells are isolines of the geodesic boundary distance at (k+1/2)*width.
+    line_width: float = Field(0.5, gt=0)
+    #: number of contour-parallel shells (perimeters) per layer patch.
+    n_shells: int = Field(2, ge=0)
+    #: infill pattern inside the shells: zig-zag lines, more contour-parallel rings, or none.
+    infill: Literal["zigzag", "contour", "none"] = "zigzag"
+    #: infill density in (0, 1]; line spacing = line_width / density.
+    infill_density: float = Field(1.0, gt=0, le=1)
+    #: zig-zag direction of the first layer (degrees about +z in the build frame) ...
+    infill_angle_deg: float = 45.0
+    #: ... rotated by this much on every following layer.
+    infill_angle_step_deg: float = 90.0
+    #: target waypoint spacing along paths (arc-length resampling; corners are kept).
+    spacing: float = Field(0.5, gt=0)
+    #: original polyline vertices turning by more than this angle are kept as waypoints.
+    corner_angle_deg: float = Field(30.0, gt=0, le=180)
+    #: layer triangles are split uniformly until the mean edge is at most this (0: line_width).
+    max_edge: float = Field(0.0, ge=0)
+    #: lift along the tool axis before/after a travel (retract height).
+    travel_lift: float = Field(1.0, ge=0)
+    #: travels shorter than this inside one patch are not lifted.
+    lift_min_travel: float = Field(2.0, ge=0)
+    #: consecutive infill lines whose ends are closer than this factor * infill spacing are joined
+    #: by an extruding connector (this makes the zig-zag).
+    join_factor: float = Field(2.5, ge=0)
+    #: closed loops alternate direction (a table C axis then unwinds instead of turning once more
+    #: per loop around it).
+    alternate_loops: bool = True
+    #: thickness used where the ray along -LPD misses everything below, and upper cap for all
+    #: thicknesses (mm).
+    max_thickness: float = Field(1.5, gt=0)
+    #: first layer: distance to the platform along the LPD, capped at this.
+    first_layer_max_thickness: float = Field(1.0, gt=0)
+    #: patches whose area is below this (mm^2) are skipped (marching-tet slivers).
+    min_patch_area: float = Field(0.05, ge=0)
+
+
+def load_toolpath_config(path: str | Path) -> ToolpathConfig:
+    """Read a ToolpathConfig from a YAML file (top-level mapping, or under a ``toolpath:`` key)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise InputError(path, f"cannot read toolpath settings: {err}") from None
+    if isinstance(data, dict) and "toolpath" in data:
+        data = data["toolpath"]
+    return toolpath_config_from_dict(data, where=path)
+
+
+def toolpath_config_from_dict(data: dict | None, where: str | Path = "toolpath") -> ToolpathConfig:
+    """Validate a mapping into a ToolpathConfig, raising InputError naming the bad key."""
+    try:
+        return ToolpathConfig.model_validate(data or {})
+    except ValidationError as err:
+        first = err.errors()[0]
+        key = ".".join(str(p) for p in first["loc"])
+        raise InputError(where, f"{key}: {first['msg']}") from None

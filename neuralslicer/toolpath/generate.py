@@ -1,0 +1,329 @@
+"""Toolpaths on curved layers (SPEC step 11): shells, infill, ordering, travels, thickness."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from neuralslicer.errors import InputError
+from neuralslicer.toolpath.config import ToolpathConfig
+from neuralslicer.toolpath.geometry import (Patch, TriangleSet, boundary_distance, layer_lpd,
+                                            layer_thickness, refine_patch, split_patches)
+from neuralslicer.toolpath.isolines import chain_segments, isoline_points, resample_polylines
+from neuralslicer.toolpath.types import Toolpaths
+from neuralslicer.types import FloatArray
+
+SHELL, INFILL = 0, 1
+
+
+@dataclass
+class _Path:
+    """One extrusion path before ordering."""
+
+    xyz: FloatArray
+    axis: FloatArray
+    patch: int
+    kind: int
+    level: int
+    closed: bool
+
+
+def _normalise(v: FloatArray) -> FloatArray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+def _polylines_from_points(xyz: FloatArray, axis: FloatArray, level: np.ndarray, segments: np.ndarray,
+                           cfg: ToolpathConfig, patch_id: int, kind: int) -> list[_Path]:
+    """Chain isoline segments, resample them, and wrap them as paths."""
+    poly = chain_segments(segments, len(xyz))
+    if len(poly) == 0:
+        return []
+    pts, off, ax = resample_polylines(xyz[poly.ids], poly.offsets, cfg.spacing,
+                                      attributes=axis[poly.ids], corner_angle_deg=cfg.corner_angle_deg)
+    ax = _normalise(ax)
+    lev = level[poly.ids[poly.offsets[:-1]]]
+    out = []
+    for i in range(len(off) - 1):
+        a, b = off[i], off[i + 1]
+        if b - a < 2:
+            continue
+        out.append(_Path(pts[a:b], ax[a:b], patch_id, kind, int(lev[i]), bool(poly.closed[i])))
+    return out
+
+
+def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathConfig) -> list[_Path]:
+    """Shells and infill of one patch (unordered)."""
+    w = cfg.line_width
+    d = boundary_distance(patch)
+    finite = np.isfinite(d)
+    d_max = float(d[finite].max()) if finite.any() else 0.0
+    paths: list[_Path] = []
+    spacing_in = w / cfg.infill_density
+    # contour-parallel shells (and contour infill continuing them)
+    levels = [(k + 0.5) * w for k in range(cfg.n_shells)]
+    if cfg.infill == "contour":
+        base = cfg.n_shells * w
+        k_max = int(np.floor((d_max - base) / spacing_in - 0.5)) + 1
+        levels += [base + (k + 0.5) * spacing_in for k in range(max(k_max, 0))]
+    levels = np.asarray([lv for lv in levels if lv < d_max], np.float64)
+    if len(levels) and finite.all():
+        iso = isoline_points(patch.faces, d, levels)
+        if len(iso.t):
+            xyz = iso.interpolate(patch.vertices)
+            ax = _normalise(iso.interpolate(patch.lpd))
+            paths += _polylines_from_points(xyz, ax, iso.level, iso.segments, cfg, patch_id, SHELL)
+    # zig-zag infill: isolines of a projected coordinate, clipped to d >= d0
+    if cfg.infill == "zigzag":
+        d0 = cfg.n_shells * w + 0.5 * w if cfg.n_shells > 0 else 0.5 * w
+        if not finite.all():
+            d0 = -np.inf
+            d = np.where(finite, d, 0.0)
+        region = d >= d0
+        if region.any():
+            theta = np.radians(cfg.infill_angle_deg + layer_index * cfg.infill_angle_step_deg)
+            u = np.array([np.cos(theta), np.sin(theta), 0.0])
+            s = patch.vertices @ u
+            s_lo, s_hi = s[region].min(), s[region].max()
+            n_lines = int(np.floor((s_hi - s_lo) / spacing_in))
+            # centre the lines in the region; a tiny offset keeps levels off vertex values
+            offset = 0.5 * ((s_hi - s_lo) - n_lines * spacing_in) + 1e-7 * spacing_in
+            lv = s_lo + offset + spacing_in * np.arange(n_lines + 1)
+            lv = lv[(lv > s.min()) & (lv < s.max())]
+            iso = isoline_points(patch.faces, s, lv)
+            if len(iso.t):
+                xyz = iso.interpolate(patch.vertices)
+                ax = iso.interpolate(patch.lpd)
+                dp = iso.interpolate(d)
+                level = iso.level
+                seg = iso.segments.copy()
+                da, db = dp[seg[:, 0]], dp[seg[:, 1]]
+                ina, inb = da >= d0, db >= d0
+                keep = ina | inb
+                cut = keep & (ina != inb)
+                ci = np.flatnonzero(cut)
+                if len(ci):
+                    a, b = seg[ci, 0], seg[ci, 1]
+                    tt = ((d0 - dp[a]) / (dp[b] - dp[a]))[:, None]
+                    new_xyz = (1 - tt) * xyz[a] + tt * xyz[b]
+                    new_ax = (1 - tt) * ax[a] + tt * ax[b]
+                    new_id = len(xyz) + np.arange(len(ci))
+                    xyz = np.concatenate([xyz, new_xyz])
+                    ax = np.concatenate([ax, new_ax])
+                    level = np.concatenate([level, level[a]])
+                    seg[ci[~ina[ci]], 0] = new_id[~ina[ci]]
+                    seg[ci[ina[ci]], 1] = new_id[ina[ci]]
+                seg = seg[keep]
+                paths += _polylines_from_points(xyz, _normalise(ax), level, seg, cfg, patch_id, INFILL)
+    return paths
+
+
+def _order_paths(paths: list[_Path], start: FloatArray, alternate_loops: bool = False,
+                 loop_parity: int = 0) -> list[_Path]:
+    """Greedy nearest-path ordering with reversal (open paths) or rotation (closed loops).
+
+    With ``alternate_loops`` every second closed loop (counting from ``loop_parity``) is reversed.
+    """
+    if not paths:
+        return []
+    cand_xyz, cand_path, cand_pos = [], [], []
+    for i, p in enumerate(paths):
+        if p.closed:
+            k = len(p.xyz) - 1
+            cand_xyz.append(p.xyz[:k])
+            cand_pos.append(np.arange(k))
+        else:
+            cand_xyz.append(p.xyz[[0, -1]])
+            cand_pos.append(np.array([0, len(p.xyz) - 1]))
+        cand_path.append(np.full(len(cand_pos[-1]), i))
+    cxyz = np.concatenate(cand_xyz)
+    cpath = np.concatenate(cand_path)
+    cpos = np.concatenate(cand_pos)
+    tree = cKDTree(cxyz)
+    used = np.zeros(len(paths), bool)
+    cur = np.asarray(start, np.float64)
+    ordered = []
+    k = min(32, len(cxyz))
+    for _ in range(len(paths)):
+        _, idx = tree.query(cur, k=k)
+        idx = np.atleast_1d(idx)
+        free = idx[~used[cpath[idx]]]
+        if len(free):
+            c = int(free[0])
+        else:
+            m = np.flatnonzero(~used[cpath])
+            c = int(m[np.argmin(np.linalg.norm(cxyz[m] - cur, axis=1))])
+        i, pos = int(cpath[c]), int(cpos[c])
+        used[i] = True
+        p = paths[i]
+        if p.closed:
+            k_ = len(p.xyz) - 1
+            order = np.concatenate([np.arange(pos, k_), np.arange(0, pos), [pos]])
+            if alternate_loops and loop_parity % 2 == 1:
+                order = order[::-1]
+            loop_parity += 1
+            p = _Path(p.xyz[order], p.axis[order], p.patch, p.kind, p.level, True)
+        elif pos != 0:
+            p = _Path(p.xyz[::-1], p.axis[::-1], p.patch, p.kind, p.level, False)
+        ordered.append(p)
+        cur = p.xyz[-1]
+    return ordered
+
+
+def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet | None], cfg: ToolpathConfig
+                 ) -> list[_Path]:
+    """Join consecutive infill lines of adjacent levels by an extruding connector on the patch.
+
+    Connector points are spaced by at most ``cfg.spacing`` and projected onto the patch (closest
+    point), so they lie on the layer too.
+    """
+    if not ordered:
+        return ordered
+    gap_max = cfg.join_factor * cfg.line_width / cfg.infill_density
+    groups: list[list[_Path]] = [[ordered[0]]]
+    for p in ordered[1:]:
+        q = groups[-1][-1]
+        gap = float(np.linalg.norm(p.xyz[0] - q.xyz[-1]))
+        if (p.kind == INFILL and q.kind == INFILL and p.patch == q.patch and abs(p.level - q.level) == 1
+                and 0 < gap <= gap_max):
+            groups[-1].append(p)
+        else:
+            groups.append([p])
+    # connectors of all groups, projected per patch in one call
+    conn: dict[tuple[int, int], tuple[FloatArray, FloatArray]] = {}
+    pts_by_patch: dict[int, list] = {}
+    for gi, g in enumerate(groups):
+        for j in range(1, len(g)):
+            q, p = g[j - 1], g[j]
+            gap = float(np.linalg.norm(p.xyz[0] - q.xyz[-1]))
+            n = max(int(np.ceil(gap / cfg.spacing)), 1)
+            t = (np.arange(1, n) / n)[:, None]
+            mid = (1 - t) * q.xyz[-1] + t * p.xyz[0]
+            conn[(gi, j)] = (mid, _normalise((1 - t) * q.axis[-1] + t * p.axis[0]))
+            pts_by_patch.setdefault(p.patch, []).append((gi, j))
+    for patch, keys in pts_by_patch.items():
+        tris = patches[patch]
+        if tris is None:
+            continue
+        allpts = np.concatenate([conn[k][0] for k in keys]) if keys else np.zeros((0, 3))
+        if len(allpts) == 0:
+            continue
+        proj, _ = tris.closest(allpts)
+        sizes = np.cumsum([len(conn[k][0]) for k in keys])[:-1]
+        for k, pp in zip(keys, np.split(proj, sizes)):
+            conn[k] = (pp, conn[k][1])
+    out = []
+    for gi, g in enumerate(groups):
+        if len(g) == 1:
+            out.append(g[0])
+            continue
+        xyz, ax = [g[0].xyz], [g[0].axis]
+        for j in range(1, len(g)):
+            xyz += [conn[(gi, j)][0], g[j].xyz]
+            ax += [conn[(gi, j)][1], g[j].axis]
+        out.append(_Path(np.concatenate(xyz), np.concatenate(ax), g[0].patch, INFILL, g[-1].level, False))
+    return out
+
+
+def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
+              config: ToolpathConfig | None = None) -> Toolpaths:
+    """Toolpaths for curved layers in print order (SPEC step 11).
+
+    layers : trimesh layers in the build frame, faces oriented along the LPD, optional
+    ``vertex_attributes['lpd']`` (n, 3); platform_z : height of the platform plane.
+    Returns waypoints with tool axis (LPD), local thickness, width and extrude flags; travel
+    waypoints lifted by ``config.travel_lift`` along the tool axis have ``path = -1``.
+    """
+    cfg = config or ToolpathConfig()
+    if len(layers) == 0:
+        raise InputError("layers", "no curved layers to fill with toolpaths")
+    w = cfg.line_width
+    max_edge = cfg.max_edge or w
+    cols: dict[str, list] = {k: [] for k in ("layer", "path", "xyz", "axis", "thickness", "width",
+                                             "extrude")}
+    below: TriangleSet | None = None
+    cur = None
+    path_id = 0
+    n_patches = 0
+    n_skipped = 0
+    n_loops = 0
+
+    def emit(layer: int, path: int, xyz: FloatArray, axis: FloatArray, thick: FloatArray,
+             width: float, extrude: np.ndarray) -> None:
+        """Append waypoints to the output columns."""
+        cols["layer"].append(np.full(len(xyz), layer, np.int64))
+        cols["path"].append(np.full(len(xyz), path, np.int64))
+        cols["xyz"].append(xyz)
+        cols["axis"].append(axis)
+        cols["thickness"].append(thick)
+        cols["width"].append(np.full(len(xyz), width))
+        cols["extrude"].append(extrude)
+
+    for li, layer in enumerate(layers):
+        verts = np.asarray(layer.vertices, np.float64)
+        faces = np.asarray(layer.faces, np.int64)
+        if len(faces) == 0:
+            continue
+        lpd = layer_lpd(layer)
+        if lpd.shape != verts.shape:
+            raise InputError(f"layers[{li}]", "vertex_attributes['lpd'] must be (n_vertices, 3)")
+        all_paths: list[_Path] = []
+        tri_sets: list[TriangleSet | None] = []
+        for patch in split_patches(verts, faces, lpd):
+            if patch.area < cfg.min_patch_area:
+                n_skipped += 1
+                continue
+            patch = refine_patch(patch, max_edge)
+            pid = len(tri_sets)
+            tri_sets.append(TriangleSet(patch.vertices, patch.faces))
+            all_paths += _patch_paths(patch, pid, li, cfg)
+            n_patches += 1
+        if not all_paths:
+            below = TriangleSet(verts, faces)
+            continue
+        start = cur if cur is not None else all_paths[0].xyz[0]
+        ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops), tri_sets, cfg)
+        n_loops += sum(p.closed for p in all_paths)
+        # thickness for all waypoints of the layer at once
+        lengths = [len(p.xyz) for p in ordered]
+        xyz_all = np.concatenate([p.xyz for p in ordered])
+        ax_all = np.concatenate([p.axis for p in ordered])
+        thick_all = layer_thickness(xyz_all, ax_all, below, platform_z, cfg.max_thickness,
+                                    cfg.first_layer_max_thickness)
+        splits = np.cumsum(lengths)[:-1]
+        prev_patch = None
+        prev_ax = None
+        for p, th in zip(ordered, np.split(thick_all, splits)):
+            if cur is not None:
+                gap = float(np.linalg.norm(p.xyz[0] - cur))
+                lift = cfg.travel_lift > 0 and (prev_patch is None or prev_patch != p.patch
+                                                or gap > cfg.lift_min_travel)
+                if lift:
+                    a0 = prev_ax if prev_ax is not None else p.axis[0]
+                    lift_pts = np.stack([cur + cfg.travel_lift * a0, p.xyz[0] + cfg.travel_lift * p.axis[0]])
+                    emit(li, -1, lift_pts, np.stack([a0, p.axis[0]]), np.zeros(2), 0.0, np.zeros(2, bool))
+            ext = np.ones(len(p.xyz), bool)
+            ext[0] = False
+            emit(li, path_id, p.xyz, p.axis, th, w, ext)
+            path_id += 1
+            cur = p.xyz[-1]
+            prev_ax = p.axis[-1]
+            prev_patch = p.patch
+        below = TriangleSet(verts, faces)
+    if not cols["xyz"]:
+        raise InputError("layers", "the layers are too small for any toolpath "
+                         f"(line width {w} mm); check units or reduce toolpath.line_width")
+    tp = Toolpaths(
+        layer=np.concatenate(cols["layer"]), path=np.concatenate(cols["path"]),
+        xyz=np.concatenate(cols["xyz"]), axis=_normalise(np.concatenate(cols["axis"])),
+        thickness=np.concatenate(cols["thickness"]), width=np.concatenate(cols["width"]),
+        extrude=np.concatenate(cols["extrude"]),
+    )
+    isovalues = [layer.metadata.get("isovalue") if hasattr(layer, "metadata") else None for layer in layers]
+    tp.attrs = {"config": cfg.model_dump(), "platform_z": float(platform_z), "n_input_layers": len(layers),
+                "isovalues": [None if v is None else float(v) for v in isovalues],
+                "n_paths": int(path_id), "n_patches": n_patches, "n_patches_skipped": n_skipped}
+    return tp

@@ -1,0 +1,129 @@
+"""Toolpath files: waypoints CSV, VTP polylines (pyvista), PNG preview; all written atomically."""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from neuralslicer.errors import InputError
+from neuralslicer.toolpath.types import Toolpaths
+
+CSV_COLUMNS = ("layer", "path", "x", "y", "z", "nx", "ny", "nz", "thickness", "width", "extrude")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path`` (same suffix); moved over ``path`` on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def write_waypoints_csv(path: str | Path, tp: Toolpaths) -> Path:
+    """Write ``layer,path,x,y,z,nx,ny,nz,thickness,width,extrude`` (one row per waypoint)."""
+    table = np.column_stack([tp.layer, tp.path, tp.xyz, tp.axis, tp.thickness, tp.width,
+                             tp.extrude.astype(np.int64)])
+    fmt = ["%d", "%d", "%.6f", "%.6f", "%.6f", "%.7f", "%.7f", "%.7f", "%.6f", "%.6f", "%d"]
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, table, fmt=fmt, delimiter=",", header=",".join(CSV_COLUMNS), comments="")
+    return Path(path)
+
+
+def read_waypoints_csv(path: str | Path) -> Toolpaths:
+    """Read a waypoints CSV written by ``write_waypoints_csv``."""
+    path = Path(path)
+    with open(path) as fh:
+        header = fh.readline().strip().split(",")
+    if tuple(header) != CSV_COLUMNS:
+        raise InputError(path, f"line 1: expected columns {','.join(CSV_COLUMNS)}")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    return Toolpaths(layer=data[:, 0].astype(np.int64), path=data[:, 1].astype(np.int64),
+                     xyz=data[:, 2:5], axis=data[:, 5:8], thickness=data[:, 8], width=data[:, 9],
+                     extrude=data[:, 10] != 0)
+
+
+def _polylines(tp: Toolpaths) -> tuple[np.ndarray, np.ndarray]:
+    """Connectivity of the extrusion polylines: (lines array for VTK, first index of each)."""
+    idx = np.arange(len(tp))
+    # a new polyline starts at every non-extruding waypoint
+    start = ~tp.extrude
+    run = np.cumsum(start) - 1
+    mask = np.zeros(len(tp), bool)
+    mask[:-1] |= tp.extrude[1:]
+    mask |= tp.extrude
+    keep = idx[mask]
+    if len(keep) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    r = run[keep]
+    b = np.flatnonzero(np.diff(r)) + 1
+    groups = np.split(keep, b)
+    lines = np.concatenate([np.concatenate([[len(g)], g]) for g in groups]).astype(np.int64)
+    return lines, np.array([g[0] for g in groups], np.int64)
+
+
+def write_toolpaths_vtp(path: str | Path, tp: Toolpaths) -> Path:
+    """Write the extrusion polylines as VTK PolyData with per-point scalars (pyvista)."""
+    import pyvista as pv
+
+    lines, _ = _polylines(tp)
+    poly = pv.PolyData(np.asarray(tp.xyz, np.float64))
+    if len(lines):
+        poly.lines = lines
+    poly.point_data["layer"] = tp.layer
+    poly.point_data["path"] = tp.path
+    poly.point_data["order"] = np.arange(len(tp), dtype=np.int64)
+    poly.point_data["thickness"] = tp.thickness
+    poly.point_data["width"] = tp.width
+    poly.point_data["extrude"] = tp.extrude.astype(np.uint8)
+    poly.point_data["axis"] = tp.axis
+    with atomic_path(path) as tmp:
+        poly.save(str(tmp))
+    return Path(path)
+
+
+def plot_toolpaths_png(path: str | Path, tp: Toolpaths, max_segments: int = 150_000,
+                       title: str | None = None) -> Path:
+    """PNG preview (matplotlib 3D, Agg): extrusion segments coloured by print order."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    seg_idx = np.flatnonzero(tp.extrude[1:]) + 1
+    if len(seg_idx) > max_segments:
+        seg_idx = seg_idx[:: int(np.ceil(len(seg_idx) / max_segments))]
+    segs = np.stack([tp.xyz[seg_idx - 1], tp.xyz[seg_idx]], axis=1)
+    fig = plt.figure(figsize=(7, 6), dpi=110)
+    ax = fig.add_subplot(projection="3d")
+    if len(segs):
+        order = seg_idx / max(len(tp) - 1, 1)
+        coll = Line3DCollection(segs, cmap="viridis", linewidths=0.6)
+        coll.set_array(order)
+        ax.add_collection3d(coll)
+        lo, hi = tp.xyz.min(axis=0), tp.xyz.max(axis=0)
+        c, r = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 1e-9
+        ax.set_xlim(c[0] - r, c[0] + r)
+        ax.set_ylim(c[1] - r, c[1] + r)
+        ax.set_zlim(c[2] - r, c[2] + r)
+        fig.colorbar(coll, ax=ax, shrink=0.6, label="print order (fraction of waypoints)")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    ax.set_title(title or f"toolpaths: {tp.n_layers} layers, {len(tp)} waypoints")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path)

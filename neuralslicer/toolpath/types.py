@@ -1,0 +1,103 @@
+"""The ``Toolpaths`` result: waypoints in print order with per-waypoint process data."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from neuralslicer.types import BoolArray, FloatArray, IndexArray
+
+TOOLPATHS_SCHEMA_VERSION = 1
+_ARRAYS = ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")
+
+
+@dataclass
+class Toolpaths:
+    """Waypoints of all layers in print order (build frame, mm).
+
+    Attributes
+    ----------
+    layer : (n,) int64
+        Layer index (print order) of each waypoint.
+    path : (n,) int64
+        Path id, increasing in print order over the whole part; ``-1`` marks the lifted travel
+        waypoints inserted between paths (they are not on a layer).
+    xyz : (n, 3) float64
+        Tool-tip position.
+    axis : (n, 3) float64
+        Unit tool axis = local printing direction (LPD) interpolated at the waypoint.
+    thickness : (n,) float64
+        Local layer thickness (distance along ``-axis`` to the layer below, or to the platform).
+    width : (n,) float64
+        Line width.
+    extrude : (n,) bool
+        True when the move *arriving* at this waypoint deposits material; the first waypoint of
+        every path is reached by a travel and has ``extrude = False``.
+    attrs : dict
+        JSON-able settings and statistics (config, counts).
+    """
+
+    layer: IndexArray
+    path: IndexArray
+    xyz: FloatArray
+    axis: FloatArray
+    thickness: FloatArray
+    width: FloatArray
+    extrude: BoolArray
+    attrs: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        """Number of waypoints."""
+        return int(self.xyz.shape[0])
+
+    @property
+    def n_layers(self) -> int:
+        """Number of layers that have at least one waypoint (max layer index + 1)."""
+        return int(self.layer.max()) + 1 if len(self) else 0
+
+    def segment_lengths(self) -> FloatArray:
+        """Length of the move arriving at each waypoint, ``(n,)`` (0 for the first)."""
+        d = np.zeros(len(self))
+        if len(self) > 1:
+            d[1:] = np.linalg.norm(np.diff(self.xyz, axis=0), axis=1)
+        return d
+
+    def deposited_volume(self) -> float:
+        """Material volume (mm^3): sum over extruding moves of length x mean thickness x width."""
+        if len(self) < 2:
+            return 0.0
+        length = self.segment_lengths()[1:]
+        t = 0.5 * (self.thickness[1:] + self.thickness[:-1])
+        w = 0.5 * (self.width[1:] + self.width[:-1])
+        return float(np.sum(length * t * w * self.extrude[1:]))
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Store-able form: (arrays, JSON attrs) for one zarr group."""
+        arrays = {name: np.ascontiguousarray(getattr(self, name)) for name in _ARRAYS}
+        arrays["extrude"] = arrays["extrude"].astype(np.uint8)
+        attrs = {"schema_version": TOOLPATHS_SCHEMA_VERSION, "units": "mm", "frame": "build",
+                 **self.attrs}
+        return arrays, attrs
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict | None = None) -> "Toolpaths":
+        """Inverse of ``to_arrays``."""
+        attrs = dict(attrs or {})
+        for key in ("schema_version", "units", "frame"):
+            attrs.pop(key, None)
+        return cls(
+            layer=np.asarray(arrays["layer"], dtype=np.int64),
+            path=np.asarray(arrays["path"], dtype=np.int64),
+            xyz=np.asarray(arrays["xyz"], dtype=np.float64).reshape(-1, 3),
+            axis=np.asarray(arrays["axis"], dtype=np.float64).reshape(-1, 3),
+            thickness=np.asarray(arrays["thickness"], dtype=np.float64),
+            width=np.asarray(arrays["width"], dtype=np.float64),
+            extrude=np.asarray(arrays["extrude"]).astype(bool),
+            attrs=attrs,
+        )
+
+    @classmethod
+    def empty(cls) -> "Toolpaths":
+        """Toolpaths without waypoints."""
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                   np.zeros(0), np.zeros(0), np.zeros(0, bool))

@@ -1,0 +1,39 @@
+"""Cache keys: digests of a step's name, version and parameters, with inputs by their digest."""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel
+
+from storage.store import ArtifactRef, to_json
+
+
+def canonical(value: Any) -> Any:
+    """A JSON-able canonical form: artifacts by digest, pydantic models by their fields."""
+    if isinstance(value, ArtifactRef):
+        return {"artifact": value.digest}
+    if isinstance(value, BaseModel):
+        return canonical(value.model_dump(mode="json"))
+    if isinstance(value, dict):
+        return {str(k): canonical(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [canonical(v) for v in value]
+    return to_json(value)
+
+
+def digest(*parts: Any, length: int = 20) -> str:
+    """Hex digest of canonical JSON of the parts."""
+    text = json.dumps(canonical(list(parts)), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def file_digest(path: str | Path, chunk: int = 1 << 20) -> str:
+    """sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()

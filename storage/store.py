@@ -1,0 +1,207 @@
+"""The artifact store: one zarr v3 store per workspace, a group per model and step, written atomically."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import time
+import uuid
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+COMPLETE = "_complete"
+STAGING = "_staging"
+
+
+@dataclass(frozen=True)
+class ArtifactRef:
+    """A reference to one complete group of the store: what tasks pass instead of arrays."""
+
+    store: str
+    path: str
+    digest: str
+
+    @property
+    def model(self) -> str:
+        """The model name (first component of the group path)."""
+        return self.path.split("/", 1)[0]
+
+
+def to_json(value: Any) -> Any:
+    """Convert numpy scalars/arrays, paths and tuples to plain JSON values."""
+    if isinstance(value, Mapping):
+        return {str(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_json(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+class ArtifactStore:
+    """A zarr v3 store on a local path or an fsspec URL; groups become visible only when complete."""
+
+    def __init__(self, root: str | Path) -> None:
+        """Open (and create if needed) the store at a local path or fsspec URL."""
+        root = str(root)
+        self.is_local = "://" not in root or root.startswith("file://")
+        self.root = str(Path(root.removeprefix("file://")).resolve()) if self.is_local else root.rstrip("/")
+        if self.is_local:
+            Path(self.root).mkdir(parents=True, exist_ok=True)
+        zarr.open_group(self.root, mode="a")
+
+    def _group(self, path: str, mode: str = "r") -> zarr.Group:
+        """Open a group of the store."""
+        return zarr.open_group(self.root, mode=mode, path=path)
+
+    def ref(self, path: str, digest: str) -> ArtifactRef:
+        """An ArtifactRef to a group of this store."""
+        return ArtifactRef(store=self.root, path=path, digest=digest)
+
+    def exists(self, path: str) -> bool:
+        """True when the group exists and was completely written."""
+        try:
+            return bool(self._group(path).attrs.get(COMPLETE, False))
+        except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, ValueError):
+            return False
+
+    def write(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any] | None = None) -> None:
+        """Write a group atomically: staged and renamed into place locally, marked complete last.
+
+        Two processes that may write the same path hold `lock(path)` around the write.
+        """
+        attrs = {**to_json(dict(attrs or {})), "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        if not self.is_local:
+            self._write_group(path, arrays, attrs)
+            return
+        staging = f"{STAGING}/{uuid.uuid4().hex}"
+        self._write_group(staging, arrays, attrs)
+        src, dst = Path(self.root, staging), Path(self.root, path)
+        if dst.exists():  # replacing: readers see the old or the new group, never a mix
+            trash = Path(self.root, STAGING, f"old-{uuid.uuid4().hex}")
+            os.replace(dst, trash)
+            os.replace(src, dst)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            if "/" in path:
+                zarr.open_group(self.root, mode="a", path=path.rsplit("/", 1)[0])
+            os.replace(src, dst)
+
+    def _write_group(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
+        """Write arrays then attributes, the completion flag last."""
+        group = zarr.open_group(self.root, mode="w", path=path)
+        for name, value in arrays.items():
+            data = np.ascontiguousarray(value)
+            if data.dtype == object:
+                raise TypeError(f"array {name!r} has dtype object")
+            group.create_array(name, data=data, overwrite=True)
+        group.attrs.update({**attrs, COMPLETE: False})
+        group.attrs[COMPLETE] = True
+
+    def read(self, path: str, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """All (or the named) arrays of a complete group, and its attributes."""
+        if not self.exists(path):
+            raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
+        group = self._group(path)
+        if names is None:
+            keys = [k for k, v in group.members(max_depth=None) if isinstance(v, zarr.Array)]
+        else:
+            keys = names
+        return {k: np.asarray(group[k][...]) for k in keys}, dict(group.attrs)
+
+    def attrs(self, path: str) -> dict[str, Any]:
+        """Attributes of a complete group."""
+        if not self.exists(path):
+            raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
+        return dict(self._group(path).attrs)
+
+    def children(self, path: str) -> list[str]:
+        """Names of the complete child groups of a group (empty when it does not exist)."""
+        try:
+            group = self._group(path)
+        except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, ValueError):
+            return []
+        return sorted(name for name, _ in group.groups() if self.exists(f"{path}/{name}"))
+
+    def remove(self, path: str) -> None:
+        """Delete a group (used to prune old checkpoints)."""
+        if self.is_local:
+            shutil.rmtree(Path(self.root, path), ignore_errors=True)
+        else:
+            with contextlib.suppress(Exception):
+                del zarr.open_group(self.root, mode="a")[path]
+
+    def write_blob(self, path: str, blob: bytes, attrs: Mapping[str, Any] | None = None) -> None:
+        """Store opaque bytes (e.g. a torch checkpoint) as a uint8 array in a group."""
+        self.write(path, {"blob": np.frombuffer(blob, dtype=np.uint8)}, attrs)
+
+    def read_blob(self, path: str) -> bytes:
+        """Bytes stored by write_blob."""
+        arrays, _ = self.read(path, ["blob"])
+        return arrays["blob"].tobytes()
+
+    @contextlib.contextmanager
+    def lock(self, path: str, timeout_s: float = 600.0) -> Iterator[None]:
+        """An exclusive lock on one artifact path across processes (O_EXCL lock file; no-op off local disk)."""
+        if not self.is_local:
+            yield
+            return
+        lock_dir = Path(self.root, STAGING, "locks")
+        lock_dir.mkdir(parents=True, exist_ok=True)
+        lock_file = lock_dir / (path.replace("/", "__") + ".lock")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fd = os.open(lock_file, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                os.write(fd, str(os.getpid()).encode())
+                os.close(fd)
+                break
+            except FileExistsError:
+                if _stale(lock_file) or time.monotonic() > deadline:
+                    with contextlib.suppress(FileNotFoundError):
+                        lock_file.unlink()
+                    continue
+                time.sleep(0.05)
+        try:
+            yield
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                lock_file.unlink()
+
+
+def _stale(lock_file: Path) -> bool:
+    """True when the process that holds a lock file no longer exists."""
+    try:
+        pid = int(lock_file.read_text() or "0")
+    except (FileNotFoundError, ValueError):
+        return False
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    """Write JSON to a file atomically (temp file + os.replace)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    tmp.write_text(json.dumps(to_json(data), indent=2, sort_keys=True))
+    os.replace(tmp, path)

@@ -1,0 +1,134 @@
+"""What every pipeline task shares: a cache key from input digests and parameters, and a deterministic output path."""
+from __future__ import annotations
+
+import functools
+import inspect
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from prefect import task
+from prefect.context import TaskRunContext
+from prefect.states import State
+
+from storage import ArtifactRef, ArtifactStore, digest
+
+# bump when a step's output for the same inputs changes (a cache-busting code version per step)
+STEP_VERSIONS = {
+    "model": "1",
+    "solid": "1",
+    "samples": "1",
+    "cage": "1",
+    "fea": "1",
+    "stress_samples": "1",
+    "field": "1",
+    "layers": "1",
+    "toolpaths": "1",
+    "verify": "1",
+    "export": "1",
+}
+
+
+def output_ref(step: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
+    """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""
+    skip = {"store", *exclude}
+    key = digest(step, STEP_VERSIONS[step], {k: v for k, v in parameters.items() if k not in skip})
+    model = parameters.get("name") or next(v.model for v in parameters.values() if isinstance(v, ArtifactRef))
+    return ArtifactRef(store=str(parameters["store"]), path=f"{model}/{step}/{key}", digest=key)
+
+
+@dataclass(frozen=True)
+class PipelineStep:
+    """How a pipeline task names its output: step name, parameters left out of the key, extra validity check."""
+
+    step: str
+    signature: inspect.Signature
+    exclude: tuple[str, ...] = ()
+    valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None
+
+    def bind(self, parameters: dict[str, Any]) -> dict[str, Any]:
+        """All parameters of a call, defaults included."""
+        bound = self.signature.bind(**parameters)
+        bound.apply_defaults()
+        return dict(bound.arguments)
+
+    def output(self, parameters: dict[str, Any]) -> ArtifactRef:
+        """The output ref for these parameters."""
+        return output_ref(self.step, self.bind(parameters), self.exclude)
+
+    def done(self, parameters: dict[str, Any]) -> bool:
+        """True when the output exists in the store (and passes the validity check)."""
+        ref = self.output(parameters)
+        return ArtifactStore(ref.store).exists(ref.path) and (self.valid is None or self.valid(ref, parameters))
+
+    def cache_key(self, context: TaskRunContext, parameters: dict[str, Any]) -> str:
+        """Prefect cache key: the step and its output digest."""
+        return f"{self.step}-{self.output(parameters).digest}"
+
+
+def run_step(task_: Any, **parameters: Any) -> State:
+    """Run a pipeline task; when its output is missing from the store, bypass the cache record (refresh it)."""
+    step: PipelineStep = task_.pipeline
+    if not step.done(parameters):
+        task_ = task_.with_options(refresh_cache=True)
+    return task_(**parameters, return_state=True)
+
+
+def pipeline_task(
+    step: str,
+    exclude: tuple[str, ...] = (),
+    valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None,
+    **task_options: Any,
+) -> Callable[[Callable[..., tuple[dict, dict]]], Any]:
+    """Prefect task for one pipeline step.
+
+    The wrapped function receives `out` (its output ref) and the step's parameters and returns
+    `(arrays, attrs)`; the wrapper writes them atomically as the group `out.path`, with the wall time.
+    Parameters named in `exclude` do not enter the cache key (e.g. file paths whose content is hashed
+    in another parameter). The task is idempotent: when its output group exists it does no work.
+    """
+
+    def decorate(fn: Callable[..., tuple[dict, dict]]) -> Any:
+        signature = inspect.signature(fn)
+        public = signature.replace(parameters=[p for n, p in signature.parameters.items() if n != "out"])
+        pipeline = PipelineStep(step, public, exclude, valid)
+
+        @functools.wraps(fn)
+        def body(*args: Any, **kwargs: Any) -> ArtifactRef:
+            params = pipeline.bind(public.bind(*args, **kwargs).arguments)
+            out = pipeline.output(params)
+            store = ArtifactStore(out.store)
+            if pipeline.done(params):
+                return out
+            with store.lock(out.path):
+                if pipeline.done(params):
+                    return out
+                start = time.perf_counter()
+                arrays, attrs = fn(out=out, **params)
+                attrs = {**attrs, "step": step, "wall_s": time.perf_counter() - start, "versions": versions()}
+                store.write(out.path, arrays, attrs)
+            return out
+
+        body.__signature__ = public  # type: ignore[attr-defined]
+        del body.__wrapped__
+        options = {"persist_result": True, "cache_key_fn": pipeline.cache_key, "name": step, **task_options}
+        pipeline_task_ = task(body, **options)
+        pipeline_task_.pipeline = pipeline
+        return pipeline_task_
+
+    return decorate
+
+
+@functools.cache
+def versions() -> dict[str, str]:
+    """Versions of the packages that shape the results (recorded with every artifact)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("neuralslicer", "numpy", "scipy", "torch", "trimesh", "pytetwild", "libigl", "zarr", "prefect"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            continue
+    return out

@@ -1,0 +1,81 @@
+"""Anisotropic verification: a bar loaded along and across the stiff (toolpath) direction."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neuralslicer.fea import FEASpec, verify_layers
+from neuralslicer.fea.element import rotate_D, stress_rotation, transversely_isotropic_D
+from neuralslicer.fea.shapes import BoxSolid
+from neuralslicer.fea.verify import material_frames
+
+Y1, Y2, NU12 = 3500.0, 1200.0, 0.3
+SIGMA = 2.0          # MPa: pressure -2 MPa on the 10 x 10 end face
+
+
+def _const(v: tuple[float, float, float]):
+    """A constant direction field."""
+    return lambda p: np.tile(np.asarray(v, dtype=np.float64), (len(p), 1))
+
+
+def _bar_spec() -> FEASpec:
+    """40x10x10 bar, symmetry supports (free lateral contraction), tension by a face pressure."""
+    return FEASpec.model_validate(dict(
+        supports=[dict(plane=dict(axis="x", value=0.0), fix=[True, False, False]),
+                  dict(plane=dict(axis="y", value=0.0), fix=[False, True, False]),
+                  dict(plane=dict(axis="z", value=0.0), fix=[False, False, True])],
+        loads=[dict(plane=dict(axis="x", value=40.0), pressure_mpa=-SIGMA)],
+        voxels=40 * 10 * 10 // 8))
+
+
+def test_rotated_constitutive_matrix_is_a_change_of_frame() -> None:
+    """D rotated by R equals the strain energy in the rotated frame (and R = I is the identity)."""
+    Dm = transversely_isotropic_D(Y1, Y2, NU12, 0.35, 775.0)
+    assert np.allclose(rotate_D(Dm, np.eye(3)[None])[0], Dm)
+    rng = np.random.default_rng(1)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    T = stress_rotation(R[None])[0]
+    sig_m = rng.normal(size=6)
+    # sigma_global = R sigma_m R^T, compared through the Voigt transform
+    from neuralslicer.fea.element import voigt_to_tensor
+    assert np.allclose(voigt_to_tensor(T @ sig_m), R @ voigt_to_tensor(sig_m) @ R.T)
+
+
+@pytest.mark.parametrize("tangent, lpd, modulus, lateral", [
+    ((1, 0, 0), (0, 0, 1), Y1, NU12 * SIGMA / Y1),      # filaments along the load
+    ((0, 1, 0), (0, 0, 1), Y2, None),                   # across, load in the weak 3-direction
+    ((0, 1, 0), (1, 0, 0), Y2, None),                   # load along the LPD (layer normal)
+])
+def test_bar_strain_along_and_across_filaments(tangent, lpd, modulus, lateral) -> None:
+    """Uniaxial stress sigma gives axial strain sigma / Y (Y1 along the toolpath, Y2 across)."""
+    out = verify_layers(BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec(), _const(lpd),
+                        _const(tangent))
+    res = out["result"]
+    assert np.allclose(res.stress[:, 0, 0], SIGMA, rtol=1e-6)
+    assert np.allclose(res.strain[:, 0, 0], SIGMA / modulus, rtol=0.02)
+    assert out["max_strain"] == pytest.approx(SIGMA / modulus, rel=0.02)
+    if lateral is not None:
+        assert np.allclose(res.strain[:, 1, 1], -lateral, rtol=0.02)
+    tip = res.grid.nodes[:, 0] > 40 - 1e-9
+    assert res.displacement[tip, 0].mean() == pytest.approx(40 * SIGMA / modulus, rel=0.02)
+
+
+def test_default_tangent_follows_stress_projected_on_layers() -> None:
+    """Without a toolpath, planar layers get filaments along tau_max (x) for an x-loaded bar."""
+    spec = _bar_spec()
+    out = verify_layers(BoxSolid((0, 0, 0), (40, 10, 10)), spec, _const((0, 0, 1)))
+    assert out["tangent"].startswith("tau_max")
+    assert out["max_strain"] == pytest.approx(SIGMA / Y1, rel=0.02)
+
+
+def test_material_frames_orthonormal_and_fallback() -> None:
+    """Frames are rotations with e2 = LPD; a tangent along the LPD falls back to the x axis."""
+    lpd = np.array([[0, 0, 2.0], [0, 0, 1.0], [1.0, 0, 0]])
+    tan = np.array([[1.0, 1.0, 5.0], [0, 0, 3.0], [1.0, 0, 0]])
+    R = material_frames(lpd, tan)
+    assert np.allclose(np.einsum("nji,njk->nik", R, R), np.eye(3))
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.allclose(R[:, :, 1], lpd / np.linalg.norm(lpd, axis=1)[:, None])
+    assert np.allclose(R[0, :, 0], [2 ** -0.5, 2 ** -0.5, 0])
+    assert np.allclose(R[1, :, 0], [1, 0, 0])            # x axis projected
+    assert np.allclose(R[2, :, 0], [0, 1, 0])            # x degenerate too: y axis

@@ -1,0 +1,150 @@
+"""G-code and robot export: forward kinematics of parsed moves, extrusion, LinuxCNC rs274, metrics."""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from neuralslicer.gcode import parse_gcode, quaternion_to_matrix, robot_table, write_gcode, write_robot_json
+from neuralslicer.motion import (PRINT, RETRACT, forward_kinematics, load_profile, plan_motion, plan_print,
+                                 program_metrics, write_print_outputs)
+from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack
+
+
+def _angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0)))
+
+
+@pytest.fixture(scope="module")
+def curved():
+    """A curved part with rotary motion: concentric caps (LPD radial), continuous C."""
+    layers = cap_stack(3, r0=8.0, theta_max_deg=40.0, center=(3.0, -2.0, 0.0), subdivisions=4)
+    profile = load_profile("table_bc_linuxcnc").model_copy(deep=True)
+    profile.kinematics.pivot = (5.0, -7.0, 60.0)
+    profile.kinematics.c_offset = (0.0, 0.0, 12.0)
+    tp, prog, metrics = plan_print(layers, platform_z=0.0, profile=profile)
+    return tp, prog, metrics
+
+
+@pytest.mark.parametrize("profile_name", ["table_bc_linuxcnc", "reprap_5axis"])
+def test_forward_kinematics_of_parsed_gcode_reproduces_waypoints(tmp_path, curved, profile_name):
+    tp, prog, _ = curved
+    profile = load_profile(profile_name)
+    profile.kinematics.pivot = (5.0, -7.0, 60.0)
+    program = plan_motion(tp, profile, platform_z=0.0)
+    path = write_gcode(tmp_path / "print.gcode", program)
+    lx, ly, lz, lb, lc, le = program.axis_letters
+    moves = parse_gcode(path, axes=lx + ly + lz + lb + lc + le)
+    assert len(moves) == len(program)
+    xyz = np.column_stack([moves.axes[lx], moves.axes[ly], moves.axes[lz]])
+    p, a = forward_kinematics(xyz, moves.axes[lb], moves.axes[lc], profile.kinematics, program.part_offset)
+    src = program.source
+    w = src >= 0
+    assert np.abs(p[w] - tp.xyz[src[w]]).max() < 1e-3
+    assert _angle_deg(a[w], tp.axis[src[w]]).max() < 0.1
+    assert np.abs(p - program.part_xyz).max() < 1e-3          # inserted moves too
+    # continuity: no C flips, every rotary step within the profile's maximum (+ rounding)
+    step = profile.kinematics.max_rotary_step_deg + 1e-4
+    assert np.abs(np.diff(moves.axes[lc])).max() <= step and np.abs(np.diff(moves.axes[lb])).max() <= step
+    # extrusion read back from the file: filament x area = deposited volume
+    de = np.diff(moves.axes[le])
+    area = np.pi * 0.25 * profile.extrusion.filament_diameter ** 2
+    printed = program.kind[1:] == PRINT
+    assert np.isclose(de[printed].sum() * area, tp.deposited_volume(), rtol=1e-3)
+    assert np.allclose(de[program.kind[1:] == RETRACT].__abs__(),
+                       np.r_[profile.extrusion.retract_mm, profile.extrusion.prime_mm].max(), atol=1e-4)
+
+
+def test_extruded_volume_matches_a_cylinder():
+    layers = [disc_layer(0.5 * (i + 1), radius=8.0, n_rings=16, n_sectors=64) for i in range(6)]
+    tp, prog, metrics = plan_print(layers, platform_z=0.0)
+    volume = np.pi * 8.0 ** 2 * 3.0
+    assert abs(metrics["material_mm3"] / volume - 1.0) < 0.15
+    assert metrics["n_collisions"] == 0 and metrics["n_rotary_out_of_range"] == 0
+    for key in ("estimated_print_time_s", "toolpath_length_mm", "n_waypoints", "material_mm3"):
+        assert metrics[key] > 0
+    # time >= length / print speed
+    assert metrics["estimated_print_time_s"] >= metrics["toolpath_length_mm"] / prog.profile.feeds.print_mm_s
+
+
+def test_linuxcnc_dialect_words(tmp_path, curved):
+    _, prog, _ = curved
+    text = write_gcode(tmp_path / "p.ngc", prog).read_text()
+    assert not re.search(r"\bM10[49]\b|\bM8[24]\b|\bE-?\d", text)       # no Marlin codes
+    assert "G93" in text and "G21" in text and "G90" in text
+    assert text.rstrip().endswith("M2")
+    g1 = [ln for ln in text.splitlines() if ln.startswith("G1")]
+    in_g93 = text.split("G93", 1)[1].split("G94", 1)[0]
+    assert all(" F" in ln for ln in in_g93.splitlines() if ln.startswith("G1")) and g1
+
+
+def _rs274_ini(tmp_path):
+    ini = tmp_path / "rs274.ini"
+    var = tmp_path / "rs274.var"
+    var.write_text("")
+    tbl = tmp_path / "tool.tbl"
+    tbl.write_text("T1 P1 Z0 D0.4 ;nozzle\n")
+    ini.write_text(f"[RS274NGC]\nPARAMETER_FILE = {var}\n[TRAJ]\nCOORDINATES = XYZABC\nLINEAR_UNITS = mm\n"
+                   "ANGULAR_UNITS = degree\n")
+    return ini, tbl
+
+
+@pytest.mark.skipif(shutil.which("rs274") is None, reason="LinuxCNC's rs274 not installed (apt-get install linuxcnc-uspace)")
+def test_linuxcnc_rs274_accepts_the_program(tmp_path):
+    layers = planar_stack(3, size=6.0, n=7) + cap_stack(2, r0=3.0, theta_max_deg=40.0, center=(0, 0, -1.5),
+                                                         subdivisions=3)
+    tp, prog, _ = plan_print(layers, platform_z=0.0)
+    ngc = write_gcode(tmp_path / "print.ngc", prog)
+    ini, tbl = _rs274_ini(tmp_path)
+    out = tmp_path / "canon.txt"
+    res = subprocess.run(["rs274", "-i", str(ini), "-t", str(tbl), "-g", str(ngc), str(out)],
+                         capture_output=True, text=True, timeout=120)
+    canon = out.read_text()
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "PROGRAM_END" in canon
+    feeds = re.findall(r"STRAIGHT_(?:FEED|TRAVERSE)\(([^)]*)\)", canon)
+    assert len(feeds) == len(prog)
+    vals = np.array([[float(v) for v in f.split(",")[:6]] for f in feeds])      # X Y Z A B C
+    assert np.allclose(vals[:, :3], prog.machine[:, :3], atol=1e-3)
+    assert np.allclose(vals[:, 4:6], prog.machine[:, 3:5], atol=1e-4)
+    assert np.allclose(vals[:, 3], prog.extruder, atol=1e-4)
+
+
+def test_robot_export_orientation_and_extrusion(tmp_path, curved):
+    tp, _, _ = curved
+    table = robot_table(tp)
+    rot = quaternion_to_matrix(table[:, 6:10])
+    assert np.allclose(rot[:, :, 2], -tp.axis, atol=1e-7)                 # tool z = -LPD
+    assert np.allclose(np.einsum("nij,nik->njk", rot, rot), np.eye(3), atol=1e-7)
+    assert np.isclose(table[:, 11].sum(), tp.deposited_volume())
+    import json
+    doc = json.loads(write_robot_json(tmp_path / "r.json", tp).read_text())
+    assert doc["columns"][6:10] == ["qw", "qx", "qy", "qz"] and len(doc["rows"]) == len(tp)
+
+
+def test_outputs_and_program_round_trip(tmp_path, curved):
+    tp, prog, metrics = curved
+    files = write_print_outputs(tmp_path, tp, prog, metrics, robot=True)
+    for key in ("waypoints_csv", "gcode", "vtp", "png", "robot_csv", "robot_json", "metrics"):
+        assert files[key].exists() and files[key].stat().st_size > 0
+    assert files["waypoints_csv"] == tmp_path / "toolpaths" / "waypoints.csv"
+    arrays, attrs = prog.to_arrays()
+    back = MachineProgram.from_arrays(arrays, attrs)
+    assert np.array_equal(back.machine, prog.machine) and back.profile == prog.profile
+    assert program_metrics(back) == program_metrics(prog)
+
+
+@pytest.mark.parametrize("profile_name", ["table_bc_linuxcnc", "reprap_5axis"])
+def test_chunked_writing_equals_one_piece(tmp_path, monkeypatch, curved, profile_name):
+    import neuralslicer.gcode.writers as writers
+
+    tp, _, _ = curved
+    prog = plan_motion(tp, load_profile(profile_name), platform_z=0.0)
+    whole = write_gcode(tmp_path / "a.gcode", prog).read_text()
+    monkeypatch.setattr(writers, "_CHUNK", 7)
+    pieces = write_gcode(tmp_path / "b.gcode", prog).read_text()
+    assert pieces == whole

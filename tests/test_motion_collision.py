@@ -1,0 +1,81 @@
+"""Nozzle collisions: a planted collision is found, convex parts are clean, the ball cover is sound."""
+from __future__ import annotations
+
+import numpy as np
+
+from neuralslicer.motion import check_collisions, load_profile, platform_clearance
+from neuralslicer.motion.collision import PART, PLATFORM, head_collisions, head_parts
+from neuralslicer.motion.profile import Nozzle
+from neuralslicer.toolpath import toolpaths
+from neuralslicer.toolpath.synthetic import cap_stack, planar_stack, square_layer
+
+NOZZLE = Nozzle(cone_half_angle_deg=30.0, cone_length=8.0, holder_radius=15.0, holder_length=30.0)
+
+
+def _inside_head(p, tip, axis, nz: Nozzle, min_height: float = 0.0) -> np.ndarray:
+    """Exact membership of points p (k,3) in the cone + holder at one pose."""
+    d = p - tip
+    h = d @ axis
+    radial = np.linalg.norm(d - h[:, None] * axis, axis=1)
+    cone = (h >= min_height) & (h <= nz.cone_length) & (radial <= h * np.tan(np.radians(nz.cone_half_angle_deg)))
+    holder = (h > nz.cone_length) & (h <= nz.cone_length + nz.holder_length) & (radial <= nz.holder_radius)
+    return cone | holder
+
+
+def test_planted_collision_is_found():
+    tower = [square_layer(0.5 * (i + 1), size=4.0, n=9) for i in range(20)]          # up to z = 10
+    late = square_layer(0.5, size=4.0, n=9, center=(8.0, 0.0))                       # printed after, low
+    tp = toolpaths(tower + [late], platform_z=0.0)
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    assert rep.count > 0
+    assert set(tp.layer[rep.indices]) == {20}
+    assert np.all(rep.kind == PART)
+    # the reported location is material of the tower, inside the head at that waypoint
+    assert rep.locations[:, 0].max() <= 2.0 + 1e-9
+    for i, loc in zip(rep.indices[:50], rep.locations[:50]):
+        assert _inside_head(loc[None], tp.xyz[i], tp.axis[i], NOZZLE)[0]
+    # exact brute force agrees that most of the late layer's on-layer waypoints collide
+    on = np.flatnonzero((tp.layer == 20) & (tp.path >= 0))
+    material = tp.xyz[(tp.layer < 20) & (tp.path >= 0)]
+    exact = np.array([_inside_head(material, tp.xyz[i], tp.axis[i], NOZZLE).any() for i in on])
+    found = np.isin(on, rep.indices)
+    assert np.array_equal(found, exact)
+
+
+def test_simple_convex_parts_are_clean():
+    profile = load_profile("table_bc_linuxcnc")
+    tp = toolpaths(planar_stack(10), platform_z=0.0)
+    assert check_collisions(tp, profile.nozzle, platform_z=0.0).count == 0
+    tp = toolpaths(cap_stack(5, r0=10.0, theta_max_deg=35.0, subdivisions=4), platform_z=0.0)
+    assert check_collisions(tp, profile.nozzle, platform_z=0.0).count == 0
+
+
+def test_platform_collision_when_tilted_low():
+    tp = toolpaths(cap_stack(1, r0=10.0, theta_max_deg=85.0, subdivisions=4), platform_z=0.0)
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    assert rep.count > 0 and np.all(rep.kind == PLATFORM)
+    # analytic: holder bottom edge = z + h a_z - R sqrt(1 - a_z^2) over the head
+    az = tp.axis[:, 2]
+    low = np.minimum.reduce([np.zeros_like(az), 8 * az - 8 * np.tan(np.radians(30)) * np.sqrt(1 - az ** 2),
+                             8 * az - 15 * np.sqrt(1 - az ** 2), 38 * az - 15 * np.sqrt(1 - az ** 2)])
+    expected = np.flatnonzero(tp.xyz[:, 2] + low < -1e-6)
+    assert np.array_equal(np.sort(rep.indices), expected)
+    assert np.allclose(platform_clearance(tp.xyz, tp.axis, NOZZLE, 0.0), tp.xyz[:, 2] + low)
+
+
+def test_head_check_is_exact_on_random_clouds():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-40, 40, size=(150, 3)) + [0, 0, 15]
+    tips = rng.uniform(-5, 5, size=(60, 3))
+    axes = rng.normal(size=(60, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
+    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
+    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
+        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+    # the enclosing balls contain the head: the rims are inside them
+    (c_cone, r_cone), (c_hold, r_hold) = head_parts(NOZZLE, 0.4)
+    rim = 8.0 * np.tan(np.radians(30.0))
+    assert np.hypot(8.0 - c_cone, rim) <= r_cone + 1e-9 and np.hypot(c_cone - 0.4, 0.4 * rim / 8) <= r_cone + 1e-9
+    assert np.hypot(15.0, 15.0) <= r_hold + 1e-9

@@ -1,0 +1,142 @@
+"""The resumable optimiser, initial guesses and result bookkeeping on small synthetic cases."""
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from neuralslicer.neural import NeuralConfig, optimise_field
+from neuralslicer.neural.device import resolve_device
+from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, user_field_on_cage
+from neuralslicer.neural.synthetic import grid_tets
+
+
+def _sphere_samples(n: int = 300, radius: float = 4.0, centre=(5.0, 5.0, 5.0), k: int = 10):
+    """Fibonacci samples of a sphere: points, outward normals, |A_p|, knn, bottom cap on platform."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    th = math.pi * (1 + 5**0.5) * i
+    nrm = np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], axis=1)
+    pts = np.asarray(centre) + radius * nrm
+    dist, knn = cKDTree(pts).query(pts, k=k + 1)
+    return pts, nrm, (dist[:, 1:] ** 2).mean(axis=1), knn[:, 1:], nrm[:, 2] < -0.95
+
+
+@pytest.fixture(scope="module")
+def problem():
+    V, T = grid_tets((4, 4, 4), np.zeros(3), np.full(3, 10.0))
+    return V, T, _sphere_samples()
+
+
+def _cfg(**optim) -> NeuralConfig:
+    return NeuralConfig.model_validate({
+        "network": "small", "device": "cpu",
+        "optim": {"max_steps": 30, "checkpoint_every": 5, "convergence_window": 1000, **optim},
+    })
+
+
+def _run(problem, cfg, **kw):
+    V, T, (pts, nrm, area, knn, pf) = problem
+    return optimise_field(V, T, pts, nrm, area, knn, pf, config=cfg, platform_z=0.0, **kw)
+
+
+class Killed(Exception):
+    pass
+
+
+def test_kill_and_resume_follows_the_same_trajectory(problem):
+    cfg = _cfg(max_steps=20)
+    final: dict[str, bytes] = {}
+    full = _run(problem, cfg, save_checkpoint=lambda b, s: final.__setitem__("full", b))
+    store: dict[int, bytes] = {}
+
+    def save_then_die(blob: bytes, step: int) -> None:
+        store[step] = blob
+        if step == 10:
+            raise Killed
+
+    with pytest.raises(Killed):
+        _run(problem, cfg, save_checkpoint=save_then_die)
+    assert max(store) == 10
+    resumed = _run(problem, cfg, load_checkpoint=lambda: store[10],
+                   save_checkpoint=lambda b, s: final.__setitem__("resumed", b))
+    assert resumed.steps == full.steps == 20
+    a = torch.load(io.BytesIO(final["full"]), weights_only=False)["fields"]
+    b = torch.load(io.BytesIO(final["resumed"]), weights_only=False)["fields"]
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.allclose(a[k], b[k], atol=1e-6, rtol=0), k
+    np.testing.assert_allclose(full.history["total"], resumed.history["total"], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(full.G, resumed.G, atol=1e-6)
+
+
+def test_optimisation_reduces_sphere_overhang_and_logs_every_term(problem):
+    cfg = _cfg(max_steps=60)
+    seen = []
+    res = _run(problem, cfg, progress=lambda step, info: seen.append((step, info)))
+    assert [s for s, _ in seen] == list(range(1, 61))
+    for key in ("total", "sf", "sr", "po", "hs", "hq", "ca", "lr"):
+        assert len(res.history[key]) == 60 and key in seen[-1][1]
+    assert res.history["total"][-1] < 0.8 * res.history["total"][0]
+    sat = res.satisfaction
+    assert sat["overhang_area_fraction"] < sat["planar_overhang_area_fraction"]
+    # planar figure by hand: overhang iff -n_z > sin 45 among non-platform samples
+    _, _, (pts, nrm, area, knn, pf) = problem
+    over = (-nrm[:, 2] > math.sin(math.radians(45))) & ~pf
+    assert abs(sat["planar_overhang_area_fraction"] - area[over].sum() / area[~pf].sum()) < 1e-12
+    # the returned LPDs are the normalised gradients of the returned G
+    assert np.allclose(np.linalg.norm(res.lpd, axis=1), 1)
+    assert np.allclose(res.G, res.deformed_vertices[:, 2])
+    arrays, attrs = res.to_arrays()
+    assert arrays["G"].shape == (len(problem[0]),) and attrs["steps"] == 60
+
+
+def test_zero_steps_is_the_planar_field(problem):
+    res = _run(problem, _cfg(max_steps=0))
+    assert res.steps == 0
+    np.testing.assert_allclose(res.G, problem[0][:, 2], atol=1e-5)
+    np.testing.assert_allclose(res.lpd, np.tile([0, 0, 1.0], (len(problem[1]), 1)), atol=1e-5)
+    assert res.satisfaction["overhang_area_fraction"] == res.satisfaction["planar_overhang_area_fraction"]
+
+
+def test_heat_geodesic_on_a_box_is_the_height():
+    V, T = grid_tets((3, 3, 6), np.zeros(3), np.array([3.0, 3.0, 6.0]))
+    phi = heat_geodesic(V, T, V[:, 2] <= 1e-9)
+    assert np.abs(phi - V[:, 2]).max() < 0.07 * V[:, 2].max()  # coarse-mesh error of the method
+    assert np.corrcoef(phi, V[:, 2])[0, 1] > 0.995
+    assert np.all(phi[V[:, 2] <= 1e-9] == 0)
+
+
+def test_height_matching_and_user_field_interpolation():
+    V, T = grid_tets((2, 2, 2), np.zeros(3), np.array([1.0, 1.0, 4.0]))
+    f = height_matched(3 * V[:, 0] + 1, V)
+    assert np.isclose(f.min(), 0) and np.isclose(f.max(), 4)
+    pts = np.random.default_rng(0).uniform(-0.2, 1.2, (400, 3)) * [1, 1, 4]
+    on_cage = user_field_on_cage(V, pts @ [1.0, 2.0, 0.5], pts)
+    inside = np.all((V > 0.2) & (V < [0.8, 0.8, 3.2]), axis=1)
+    np.testing.assert_allclose(on_cage[inside], (V @ [1.0, 2.0, 0.5])[inside], atol=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["heat", "user"])
+def test_non_identity_guess_is_pretrained(problem, kind):
+    V = problem[0]
+    cfg = NeuralConfig.model_validate({
+        "network": "small", "device": "cpu", "optim": {"max_steps": 0},
+        "init": {"kind": kind, "pretrain_steps": 80, "pretrain_lr": 3e-3},
+    })
+    user = V[:, 2] + 0.4 * (V[:, 0] - 5.0)  # a tilted height field
+    res = _run(problem, cfg, user_field=user)
+    # heat on a box is already close to the height: a smaller relative gain is expected
+    assert res.pretrain_history[-1] < (0.3 if kind == 'user' else 0.7) * res.pretrain_history[0]
+    if kind == "user":
+        target = height_matched(user, V)
+        assert np.corrcoef(res.G, target)[0, 1] > 0.98
+
+
+def test_device_auto():
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu").type == "cpu"

@@ -1,0 +1,178 @@
+"""Toolpaths on synthetic layers: on-layer, volume, thickness, axes, inside the solid, files."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from neuralslicer.errors import InputError
+from neuralslicer.toolpath import (ToolpathConfig, Toolpaths, read_waypoints_csv, toolpath_config_from_dict,
+                                   toolpaths, write_toolpaths_vtp, write_waypoints_csv)
+from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack, tilted_stack
+
+
+@pytest.fixture(scope="module")
+def box_paths():
+    layers = planar_stack(8, thickness=0.5, size=10.0)
+    return layers, toolpaths(layers, platform_z=0.0)
+
+
+@pytest.fixture(scope="module")
+def cap_paths():
+    layers = cap_stack(5, thickness=0.5, r0=10.0, theta_max_deg=35.0, subdivisions=4)
+    return layers, toolpaths(layers, platform_z=-20.0)
+
+
+def _distance_to_layers(tp: Toolpaths, layers) -> np.ndarray:
+    on = tp.path >= 0
+    dist = np.zeros(len(tp))
+    for li, layer in enumerate(layers):
+        m = on & (tp.layer == li)
+        if m.any():
+            _, d, _ = trimesh.proximity.closest_point(layer, tp.xyz[m])
+            dist[m] = d
+    return dist[on]
+
+
+def test_waypoints_lie_on_their_layers(box_paths, cap_paths):
+    for layers, tp in (box_paths, cap_paths):
+        assert _distance_to_layers(tp, layers).max() < 1e-3
+
+
+def test_box_volume_at_full_infill_matches_the_solid(box_paths):
+    _, tp = box_paths
+    volume = 10.0 * 10.0 * 4.0
+    assert abs(tp.deposited_volume() / volume - 1.0) < 0.15
+    on = tp.path >= 0
+    assert np.allclose(tp.thickness[on], 0.5, atol=1e-9)
+    assert np.allclose(tp.axis[on], [0, 0, 1], atol=1e-12)
+    # waypoints stay half a line inside the square's edge
+    assert np.abs(tp.xyz[on, :2]).max() <= 5.0 - 0.25 + 0.05
+
+
+@pytest.mark.parametrize("infill", ["contour", "zigzag"])
+def test_cylinder_volume_and_inside_solid(infill):
+    layers = [disc_layer(0.4 * (i + 1), radius=6.0, n_rings=12, n_sectors=64) for i in range(5)]
+    tp = toolpaths(layers, platform_z=0.0, config=ToolpathConfig(infill=infill))
+    volume = np.pi * 6.0 ** 2 * 2.0
+    assert abs(tp.deposited_volume() / volume - 1.0) < 0.15
+    on = tp.path >= 0
+    H = np.maximum(np.linalg.norm(tp.xyz[on, :2], axis=1) - 6.0, -tp.xyz[on, 2])   # cylinder, H<0 inside
+    assert H.max() <= 1e-3
+
+
+def test_sparse_infill_deposits_less():
+    layers = planar_stack(3, size=12.0)
+    full = toolpaths(layers, 0.0, ToolpathConfig(n_shells=1)).deposited_volume()
+    half = toolpaths(layers, 0.0, ToolpathConfig(n_shells=1, infill_density=0.5)).deposited_volume()
+    shells = toolpaths(layers, 0.0, ToolpathConfig(n_shells=1, infill="none")).deposited_volume()
+    assert shells < half < full
+    assert abs((half - shells) / (full - shells) - 0.5) < 0.1
+
+
+def test_curved_layers_axis_and_thickness(cap_paths):
+    layers, tp = cap_paths
+    on = tp.path >= 0
+    radial = tp.xyz[on] / np.linalg.norm(tp.xyz[on], axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", radial, tp.axis[on]), -1, 1)))
+    assert ang.max() < 1.0
+    later = on & (tp.layer > 0)
+    assert np.allclose(tp.thickness[later], 0.5, atol=0.01)
+    first = on & (tp.layer == 0)
+    assert np.allclose(tp.thickness[first], ToolpathConfig().first_layer_max_thickness)
+
+
+def test_tilted_stack_thickness_along_the_normal():
+    layers = tilted_stack(4, tilt_deg=30.0, thickness=0.5)
+    tp = toolpaths(layers, platform_z=0.0)
+    on = (tp.path >= 0) & (tp.layer > 0)
+    assert np.allclose(tp.thickness[on], 0.5, atol=1e-6)
+    assert _distance_to_layers(tp, layers).max() < 1e-3
+
+
+def test_travel_lifts_along_the_tool_axis(box_paths):
+    _, tp = box_paths
+    lift = np.flatnonzero(tp.path < 0)
+    assert len(lift) > 0 and not tp.extrude[lift].any()
+    # first lift point of a pair sits travel_lift above the end of the previous path
+    pairs = lift[tp.path[lift - 1] >= 0]
+    d = tp.xyz[pairs] - tp.xyz[pairs - 1]
+    assert np.allclose(d, ToolpathConfig().travel_lift * tp.axis[pairs - 1])
+    # every path starts with a travel
+    starts = np.flatnonzero(np.diff(tp.path, prepend=-2) != 0) 
+    assert not tp.extrude[starts].any()
+
+
+def test_round_trips(tmp_path, box_paths):
+    _, tp = box_paths
+    arrays, attrs = tp.to_arrays()
+    back = Toolpaths.from_arrays(arrays, attrs)
+    assert np.array_equal(back.xyz, tp.xyz) and np.array_equal(back.extrude, tp.extrude)
+    assert attrs["schema_version"] == 1
+    csv = write_waypoints_csv(tmp_path / "toolpaths" / "waypoints.csv", tp)
+    assert csv.read_text().splitlines()[0] == "layer,path,x,y,z,nx,ny,nz,thickness,width,extrude"
+    again = read_waypoints_csv(csv)
+    assert np.allclose(again.xyz, tp.xyz, atol=1e-6) and np.array_equal(again.path, tp.path)
+    import pyvista as pv
+    vtp = write_toolpaths_vtp(tmp_path / "toolpaths.vtp", tp)
+    mesh = pv.read(vtp)
+    assert mesh.n_points == len(tp) and mesh.n_lines == len(np.unique(tp.path[tp.path >= 0]))
+    assert not list(tmp_path.glob(".*"))   # no temporary files left
+
+
+def test_user_errors():
+    with pytest.raises(InputError):
+        toolpaths([], platform_z=0.0)
+    with pytest.raises(InputError, match="line_width"):
+        toolpath_config_from_dict({"line_width": -1})
+    with pytest.raises(InputError, match="too small"):
+        toolpaths(planar_stack(1, size=0.2, n=3), 0.0)
+
+
+def test_triangle_soup_with_flipped_faces_gives_the_same_paths():
+    layers = planar_stack(2, size=8.0, n=9)
+    ref = toolpaths(layers, 0.0)
+    soup = []
+    rng = np.random.default_rng(0)
+    for m in layers:
+        f = m.faces.copy()
+        flip = rng.random(len(f)) < 0.5
+        f[flip] = f[flip][:, ::-1]
+        v = m.vertices[f.ravel()]                      # every face has its own vertices
+        s = trimesh.Trimesh(v, np.arange(len(v)).reshape(-1, 3), process=False)
+        s.vertex_attributes["lpd"] = np.tile([0, 0, 1.0], (len(v), 1))
+        soup.append(s)
+    tp = toolpaths(soup, 0.0)
+    assert np.isclose(tp.deposited_volume(), ref.deposited_volume(), rtol=1e-6)
+    assert tp.attrs["n_paths"] == ref.attrs["n_paths"]
+
+
+def test_irregular_curved_layers_from_marching_cubes():
+    """Bowl layers G = z - 0.03 r^2 (irregular triangles), trimmed to a cylinder: analytic thickness."""
+    from skimage.measure import marching_cubes
+
+    h = 0.5
+    xs = np.arange(-11, 11.01, h)
+    zs = np.arange(-1, 9, h)
+    X, Y, Z = np.meshgrid(xs, xs, zs, indexing="ij")
+    G = Z - 0.03 * (X ** 2 + Y ** 2)
+    layers = []
+    for iso in (0.6, 1.2, 1.8):
+        v, f, _, _ = marching_cubes(G, iso, spacing=(h, h, h))
+        v = v + [xs[0], xs[0], zs[0]]
+        f = f[(np.linalg.norm(v[:, :2], axis=1) <= 9.0)[f].all(axis=1)]
+        grad = np.column_stack([-0.06 * v[:, 0], -0.06 * v[:, 1], np.ones(len(v))])
+        m = trimesh.Trimesh(v, f, process=False)
+        m.vertex_attributes["lpd"] = grad / np.linalg.norm(grad, axis=1, keepdims=True)
+        layers.append(m)
+    tp = toolpaths(layers, platform_z=0.0)
+    assert _distance_to_layers(tp, layers).max() < 1e-3
+    on = (tp.path >= 0) & (tp.layer > 0)
+    r = np.linalg.norm(tp.xyz[on, :2], axis=1)
+    inner = r < 7.0
+    expected = 0.6 / np.sqrt(1 + (0.06 * r) ** 2)
+    assert np.allclose(tp.thickness[on][inner], expected[inner], rtol=0.03)
+    lpd = np.column_stack([-0.06 * tp.xyz[on, 0], -0.06 * tp.xyz[on, 1], np.ones(on.sum())])
+    lpd /= np.linalg.norm(lpd, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", lpd, tp.axis[on]), -1, 1))).max() < 1.0
+    assert np.linalg.norm(tp.xyz[tp.path >= 0, :2], axis=1).max() <= 9.0
