@@ -14,7 +14,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from neuralslicer.gcode import write_gcode
 from neuralslicer.motion import check_collisions, load_profile, plan_motion, program_metrics

@@ -12,10 +12,20 @@ from prefect.states import State
 
 from neuralslicer.config import SliceConfig
 from neuralslicer.model.spec import ModelSpec, spec_digest
+from neuralslicer.motion.profile import load_profile
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
 from tasks.common import run_step
 from tasks.export import export_outputs
-from tasks.steps import load_model, make_cage, make_layers, optimise_field_task, sample_surface, solid_surface
+from tasks.fea import fea_task, stress_samples_task, verify_task
+from tasks.steps import (
+    load_model,
+    make_cage,
+    make_layers,
+    optimise_field_task,
+    plan_print_task,
+    sample_surface,
+    solid_surface,
+)
 
 
 @dataclass
@@ -53,17 +63,27 @@ def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -
     solid = log.run(solid_surface, store=store, model=model)
     samples = log.run(sample_surface, store=store, model=model, config=config.samples)
     cage = log.run(make_cage, store=store, model=model, samples=samples, config=config.cage)
-    stress = None
+    fea = stress = verify = None
+    if "sr" in objectives or config.verify:
+        fea = log.run(fea_task, store=store, model=model)
     if "sr" in objectives:
-        stress = log.run(_stress_samples_task(), store=store, model=model)
+        stress = log.run(stress_samples_task, store=store, model=model, fea=fea)
     field_ref = log.run(
         optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
         objectives=objectives, config=config.neural,
     )
     layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
+    printing = log.run(
+        plan_print_task, store=store, model=model, layers=layers, config=config.toolpath,
+        machine=load_profile(config.machine),
+    )
+    if config.verify:
+        verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
     log.run(
         export_outputs, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
-        field=field_ref, layers=layers, stress=stress, alpha_deg=config.alpha_deg, beta_deg=config.neural.loss.beta_deg,
+        field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,
+        alpha_deg=config.alpha_deg,
+        beta_deg=config.neural.loss.beta_deg,
     )
     summary = {
         "tasks": [{"task": t, "state": s} for t, s in log.states],
@@ -74,13 +94,6 @@ def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -
     }
     write_json_atomic(Path(out_dir) / "run.json", summary)
     return summary
-
-
-def _stress_samples_task() -> Any:
-    """The FEA stress-samples task (imported lazily: only SR runs need the FEA)."""
-    from tasks.fea import stress_samples_task
-
-    return stress_samples_task
 
 
 def ensure_store(store: str) -> str:

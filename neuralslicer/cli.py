@@ -69,6 +69,12 @@ def build_config(args: argparse.Namespace) -> Any:
         data["neural"]["device"] = args.device
     if args.seed is not None:
         data["neural"]["optim"]["seed"] = args.seed
+    if args.verify:
+        data["verify"] = True
+    if args.robot:
+        data["robot"] = True
+    if args.machine is not None:
+        data["machine"] = args.machine
     if args.init is not None:
         data["neural"]["init"]["kind"] = args.init if args.init in ("height", "heat") else "user"
     try:
@@ -145,6 +151,49 @@ def run_in_out_dir(out_dir: Path, job: Callable[[], int]) -> int:
         raise
 
 
+def cmd_fea(args: argparse.Namespace) -> int:
+    """Isotropic voxel FEA of a model spec alone: DIR/fea.vtu, DIR/metrics.json, a stress picture."""
+    from neuralslicer.fea import run_fea, write_fea_outputs
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+
+    path = Path(args.spec)
+    if not path.exists():
+        raise InputError(path, "no such file")
+    spec = spec_for_file(path, args.up or "z")
+    if args.up is not None:
+        spec = spec.model_copy(update={"up": args.up})
+    if spec.fea is None:
+        raise InputError(path, "the spec has no 'fea' block (material, supports, loads)")
+    fea = spec.fea if args.voxels is None else spec.fea.model_copy(update={"voxels": args.voxels})
+    out_dir = Path(args.out).resolve()
+
+    def job() -> int:
+        try:
+            result = run_fea(implicit_solid(spec), fea)
+        except InputError as exc:
+            if exc.where.startswith("fea"):
+                raise InputError(f"{path}: {exc.where}", exc.message) from None
+            raise
+        metrics = write_fea_outputs(result, out_dir)
+        for key in ("fea.max_displacement_mm", "fea.max_von_mises_mpa"):
+            print(f"{key}: {metrics[key]:.6g}")
+        print(f"results: {out_dir}  (fea.vtu, metrics.json, fea_von_mises.png)")
+        return 0
+
+    return run_in_out_dir(out_dir, job)
+
+
+def add_fea_parser(sub: Any) -> None:
+    """Options of `neuralslicer fea`."""
+    p = sub.add_parser("fea", help="isotropic voxel FEA of a model spec (stresses, principal directions)")
+    p.add_argument("spec", help="model spec (.yaml) with an fea block")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--up", choices=UP_AXES, default=None, help="override the spec's up axis")
+    p.add_argument("--voxels", type=int, default=None, help="target voxel count (default from the spec, 100000)")
+    p.set_defaults(func=cmd_fea)
+
+
 def add_slice_parser(sub: Any) -> None:
     """Options of `neuralslicer slice`."""
     p = sub.add_parser("slice", help="slice a model into curved layers")
@@ -161,6 +210,9 @@ def add_slice_parser(sub: Any) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device (default auto)")
     p.add_argument("--seed", type=int, default=None, help="random seed of the optimisation")
     p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
+    p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
+    p.add_argument("--robot", action="store_true", help="also write robot_waypoints.csv/.json")
+    p.add_argument("--verify", action="store_true", help="anisotropic FEA of planar vs computed layers (spec needs fea)")
     p.set_defaults(func=cmd_slice)
 
 
@@ -170,6 +222,7 @@ def make_parser() -> ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     add_slice_parser(sub)
+    add_fea_parser(sub)
     return parser
 
 

@@ -11,6 +11,7 @@ from neuralslicer.cage import CageConfig
 from neuralslicer.errors import InputError
 from neuralslicer.layers import LayerConfig
 from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.toolpath.config import ToolpathConfig
 
 Objective = Literal["sf", "sr", "po", "ca"]
 
@@ -34,6 +35,10 @@ class SliceConfig(BaseModel):
     neural: NeuralConfig = Field(default_factory=NeuralConfig)
     layers: LayerConfig = Field(default_factory=LayerConfig)
     alpha_deg: float = Field(45.0, gt=0, lt=90, description="self-supporting angle for the SF metrics")
+    toolpath: ToolpathConfig = Field(default_factory=ToolpathConfig)
+    machine: str = Field("table_bc_linuxcnc", description="machine profile: a shipped name or a YAML file")
+    robot: bool = Field(False, description="also write robot_waypoints.csv/.json (position, tool quaternion, extrusion)")
+    verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> SliceConfig:

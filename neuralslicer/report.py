@@ -67,6 +67,21 @@ def plot_angle_histogram(path: Path, angles: dict[str, np.ndarray], weights: np.
     _save(fig, path)
 
 
+def plot_strain_histogram(path: Path, strains: dict[str, np.ndarray]) -> None:
+    """Histograms of the per-voxel max principal strain for several layer sets."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    top = max(float(np.max(s)) for s in strains.values())
+    bins = np.linspace(0, top, 61)
+    for label, s in strains.items():
+        ax.hist(s, bins=bins, histtype="step", linewidth=1.8, label=f"{label} (max {np.max(s):.3g})")
+    ax.set_yscale("log")
+    ax.set_xlabel("max |principal strain| per voxel")
+    ax.set_ylabel("voxels")
+    ax.legend()
+    ax.set_title("strain of the printed part")
+    _save(fig, path)
+
+
 def plot_learning_curves(path: Path, curves: dict[str, dict[str, np.ndarray]]) -> None:
     """Loss terms per step (log scale) for one or several runs."""
     fig, ax = plt.subplots(figsize=(7, 4))

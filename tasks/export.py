@@ -13,14 +13,35 @@ import pyvista as pv
 import trimesh
 
 from neuralslicer.metrics import overhang_area_fraction, strength_angles, strength_satisfaction, support_angles
-from neuralslicer.report import markdown_report, plot_angle_histogram, plot_layers, plot_learning_curves
+from neuralslicer.report import (
+    markdown_report,
+    plot_angle_histogram,
+    plot_layers,
+    plot_learning_curves,
+    plot_strain_histogram,
+)
 from neuralslicer.samples import write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, write_text_atomic
 from tasks.common import pipeline_task
-from tasks.steps import read_cage, read_field, read_layers, read_samples
+from neuralslicer.motion.pipeline import write_print_outputs
+from neuralslicer.toolpath.io import plot_toolpaths_png
+from tasks.steps import read_cage, read_field, read_layers, read_print, read_samples
 
 STAMP = ".neuralslicer-export"
+PRINT_METRICS = (
+    "toolpath_length_mm",
+    "n_waypoints",
+    "estimated_print_time_s",
+    "material_mm3",
+    "n_collisions",
+    "n_part_collisions",
+    "n_platform_collisions",
+    "n_singular",
+    "n_rotary_out_of_range",
+    "c_range_deg",
+    "n_waypoints_outside_solid",
+)
 
 
 def _export_current(out: ArtifactRef, params: dict[str, Any]) -> bool:
@@ -80,7 +101,10 @@ def export_outputs(
     cage: ArtifactRef,
     field: ArtifactRef,
     layers: ArtifactRef,
+    printing: ArtifactRef,
     stress: ArtifactRef | None,
+    verify: ArtifactRef | None,
+    robot: bool,
     alpha_deg: float,
     beta_deg: float,
 ) -> tuple[dict, dict]:
@@ -146,11 +170,22 @@ def export_outputs(
             T["volumes"], beta_deg, "angle between tau_max and the layer (°)", "strength: stress samples T",
         )
         figures["Strength angle histogram"] = "figures/sr_histogram.png"
+    if verify is not None:
+        v_arrays, v_attrs = st.read(verify.path)
+        metrics.update({f"fea.{k}": v for k, v in v_attrs.items() if k.startswith("max_strain")})
+        plot_strain_histogram(figs / "strain_histogram.png", {"planar": v_arrays["strain_planar"], "computed": v_arrays["strain"]})
+        figures["Strain of the printed part (transversely isotropic FEA)"] = "figures/strain_histogram.png"
     field_arrays, _ = st.read(field.path)
     history = {k.split("/", 1)[1]: v for k, v in field_arrays.items() if k.startswith("history/")}
     if history:
         plot_learning_curves(figs / "learning_curves.png", {"field": history})
         figures["Learning curves"] = "figures/learning_curves.png"
+    tp, program, print_metrics = read_print(printing)
+    write_print_outputs(d, tp, program, print_metrics, robot=robot, png=False)
+    metrics.update({k: print_metrics[k] for k in PRINT_METRICS if k in print_metrics})
+    metrics["collisions"] = int(print_metrics.get("n_collisions", 0))
+    plot_toolpaths_png(figs / "toolpaths.png", tp)
+    figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
     write_json_atomic(d / "metrics.json", metrics)
     write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {model.model}", metrics, figures))
     write_text_atomic(d / STAMP, out.digest)

@@ -10,11 +10,16 @@ from neuralslicer.cage import Cage, CageConfig, build_cage, interior_points
 from neuralslicer.config import SampleConfig
 from neuralslicer.layers import LayerConfig, Layers, choose_isovalues, extract_layers
 from neuralslicer.model.solid import Solid, implicit_solid
+from neuralslicer.motion.pipeline import plan_print
+from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.samples import SurfaceSamples, surface_samples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.tetmesh import tet_volumes
+from neuralslicer.toolpath.config import ToolpathConfig
+from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.topology import genus, tet_boundary_genus
 from storage import ArtifactRef, ArtifactStore
 from tasks.common import pipeline_task
@@ -143,3 +148,30 @@ def read_layers(ref: ArtifactRef) -> Layers:
 def step_attrs(refs: dict[str, ArtifactRef | None]) -> dict[str, dict[str, Any]]:
     """Attributes of each stored step (wall times, reports)."""
     return {k: ArtifactStore(r.store).attrs(r.path) for k, r in refs.items() if r is not None}
+
+
+@pipeline_task("toolpaths")
+def plan_print_task(
+    out: ArtifactRef, store: str, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig, machine: MachineProfile
+) -> tuple[dict, dict]:
+    """Toolpaths on every layer, the machine program (IK, extrusion, collisions) and their metrics."""
+    solid = read_solid(model)
+    tp, program, metrics = plan_print(
+        read_layers(layers).meshes, platform_z=solid.platform_z, solid_H=solid.H, toolpath_cfg=config, profile=machine
+    )
+    tp_arrays, tp_attrs = tp.to_arrays()
+    prog_arrays, prog_attrs = program.to_arrays()
+    arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()}}
+    get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("collisions", 0))
+    return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
+
+
+def read_print(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
+    """Toolpaths, machine program and print metrics from the store."""
+    arrays, attrs = ArtifactStore(ref.store).read(ref.path)
+    part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
+    return (
+        Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]),
+        MachineProgram.from_arrays(part["program"], attrs["program"]),
+        attrs["metrics"],
+    )

@@ -61,7 +61,9 @@ def test_forward_kinematics_of_parsed_gcode_reproduces_waypoints(tmp_path, curve
 
 def test_extruded_volume_matches_a_cylinder():
     layers = [disc_layer(0.5 * (i + 1), radius=8.0, n_rings=16, n_sectors=64) for i in range(6)]
-    tp, prog, metrics = plan_print(layers, platform_z=0.0)
+    H = lambda p: np.maximum(np.linalg.norm(p[:, :2], axis=1) - 8.0, np.maximum(-p[:, 2], p[:, 2] - 3.0))  # noqa: E731
+    tp, prog, metrics = plan_print(layers, platform_z=0.0, solid_H=H)
+    assert metrics["n_waypoints_outside_solid"] == 0 and metrics["max_H_at_waypoints"] <= 1e-3
     volume = np.pi * 8.0 ** 2 * 3.0
     assert abs(metrics["material_mm3"] / volume - 1.0) < 0.15
     assert metrics["n_collisions"] == 0 and metrics["n_rotary_out_of_range"] == 0

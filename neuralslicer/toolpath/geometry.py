@@ -9,7 +9,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
-from neuralslicer.types import BoolArray, FloatArray, IndexArray
+from neuralslicer.types import FloatArray, IndexArray
 
 
 @dataclass

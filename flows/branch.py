@@ -1,0 +1,219 @@
+"""One study branch: the slicing pipeline of one model and configuration, run as a Prefect task on any task runner."""
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from prefect import task
+from prefect.cache_policies import NONE
+from neuralslicer.config import SliceConfig
+from neuralslicer.errors import InputError, NeuralSlicerError
+from neuralslicer.model.spec import ModelSpec, spec_digest, spec_for_file
+from pydantic import BaseModel, ConfigDict, Field
+
+from storage import ArtifactRef, ArtifactStore, digest, write_json_atomic
+
+
+class Branch(BaseModel):
+    """One branch of a study: which model, with which configuration, into which folder."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(description="branch name; also the folder DIR/<name>")
+    model: str = Field(description="model file or spec (.yaml)")
+    up: str | None = Field(None, description="up axis override (default: the spec's, or z)")
+    config: SliceConfig = Field(default_factory=SliceConfig)
+    out_dir: str = Field(description="the branch's output folder (slice contract)")
+    store: str = Field(description="artifact store path or fsspec URL")
+    user_field: str | None = Field(None, description=".npz with 'points' (p,3, build frame) and 'values' (p,)")
+    parameters: dict[str, Any] = Field(default_factory=dict, description="what this branch varies (for reports)")
+
+
+def load_branch_spec(model: str, up: str | None) -> ModelSpec:
+    """The model spec of a branch (file or spec YAML) with the up override."""
+    path = Path(model)
+    if not path.exists():
+        raise InputError(model, "no such file")
+    spec = spec_for_file(path, up or "z")
+    if up is not None and spec.up != up:
+        source = spec.source
+        spec = spec.model_copy(update={"up": up})
+        spec.source = source
+    return spec
+
+
+def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
+    """Put a user field file (.npz: points (p,3) in the build frame, values (p,)) in the store, keyed by content."""
+    try:
+        with np.load(path) as data:
+            points = np.asarray(data["points"], dtype=np.float64)
+            values = np.asarray(data["values"], dtype=np.float64).ravel()
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(path, f"a user field is an .npz with 'points' (p,3) and 'values' (p,): {exc}") from None
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) != len(values) or not np.isfinite(values).all():
+        raise InputError(path, f"points {points.shape} and values {values.shape} do not match (p,3) and (p,)")
+    key = digest("user_field", hashlib.sha256(points.tobytes() + values.tobytes()).hexdigest())
+    ref = ArtifactStore(store).ref(f"{model}/user_field/{key}", key)
+    st = ArtifactStore(store)
+    if not st.exists(ref.path):
+        with st.lock(ref.path):
+            if not st.exists(ref.path):
+                st.write(ref.path, {"points": points, "values": values}, {"source": str(path)})
+    return ref
+
+
+def make_user_field(bounds: np.ndarray, path: str | Path, n: int = 9, tilt: float = 0.5) -> Path:
+    """A smooth user field over a box (build frame): a tilted, gently curved height, saved as .npz."""
+    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+    pad = 0.25 * (hi - lo) + 1.0
+    axes = [np.linspace(lo[i] - pad[i], hi[i] + pad[i], n) for i in range(3)]
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    centre, size = (lo + hi) / 2, float(np.max(hi - lo))
+    values = Z + tilt * (X - centre[0]) + 0.25 * size * np.sin(np.pi * (Y - centre[1]) / (2 * size))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, points=np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1), values=values.ravel())
+    return path
+
+
+def worker_identity() -> dict[str, Any]:
+    """Where this code runs: pid, host, thread, and the Dask worker's name/address when on one."""
+    info: dict[str, Any] = {"pid": os.getpid(), "host": socket.gethostname(), "thread": threading.current_thread().name}
+    try:
+        from distributed import get_worker
+
+        w = get_worker()
+        info["dask_worker"] = str(w.name)
+        info["dask_address"] = str(w.address)
+    except (ImportError, ValueError):
+        pass
+    return info
+
+
+def _filtered(task_: Any, params: dict[str, Any]) -> dict[str, Any]:
+    """The parameters a pipeline task accepts (tolerates optional parameters added or removed upstream)."""
+    names = task_.pipeline.signature.parameters
+    return {k: v for k, v in params.items() if k in names}
+
+
+def run_pipeline(branch: Branch) -> dict[str, Any]:
+    """The slicing pipeline for one branch (the slice flow's steps, plus a user-field initial guess); returns its record."""
+    from flows.slice import RunLog, default_objectives, model_name
+    from neuralslicer.provenance import add_to_metrics, provenance, record_provenance
+    from tasks.export import export_outputs
+    from tasks.steps import load_model, make_cage, make_layers, optimise_field_task, sample_surface, solid_surface
+
+    start = time.perf_counter()
+    started_at = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    spec = load_branch_spec(branch.model, branch.up)
+    config, store = branch.config, ArtifactStore(branch.store).root
+    log = RunLog()
+    objectives = config.objectives if config.objectives is not None else default_objectives(spec)
+    name = model_name(spec)
+    model = log.run(load_model, store=store, name=name, spec=spec, content=spec_digest(spec))
+    solid = log.run(solid_surface, store=store, model=model)
+    samples = log.run(sample_surface, store=store, model=model, config=config.samples)
+    cage = log.run(make_cage, store=store, model=model, samples=samples, config=config.cage)
+    fea = stress = verify = None
+    if "sr" in objectives or getattr(config, "verify", False):
+        from tasks import fea as fea_tasks
+
+        fea = log.run(fea_tasks.fea_task, store=store, model=model)
+        if "sr" in objectives:
+            stress = log.run(fea_tasks.stress_samples_task, store=store, model=model, fea=fea)
+    user = store_user_field(store, name, branch.user_field) if branch.user_field else None
+    field_params = dict(store=store, model=model, cage=cage, samples=samples, stress=stress, objectives=objectives,
+                        config=config.neural, user_field=user)
+    checkpoints = _checkpoints_before(optimise_field_task, field_params, objectives)
+    field_ref = log.run(optimise_field_task, **field_params)
+    layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
+    printing = None
+    if "printing" in export_outputs.pipeline.signature.parameters:  # toolpaths and machine program (issue 4)
+        from neuralslicer.motion.profile import load_profile
+        from tasks.steps import plan_print_task
+
+        printing = log.run(plan_print_task, store=store, model=model, layers=layers, config=config.toolpath,
+                           machine=load_profile(config.machine))
+    if getattr(config, "verify", False):
+        from tasks import fea as fea_tasks
+
+        verify = log.run(fea_tasks.verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
+    export_params = dict(store=store, out_dir=branch.out_dir, model=model, solid=solid, samples=samples, cage=cage,
+                         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify,
+                         robot=getattr(config, "robot", False), alpha_deg=config.alpha_deg,
+                         beta_deg=config.neural.loss.beta_deg)
+    log.run(export_outputs, **_filtered(export_outputs, export_params))
+    record = provenance(spec, config, {"user_field": branch.user_field} if branch.user_field else None,
+                        {"branch": branch.name, "store": store})
+    prov_digest = record_provenance(branch.out_dir, store, name, record)
+    add_to_metrics(branch.out_dir, record)
+    st = ArtifactStore(store)
+    field_attrs, cage_attrs = st.attrs(field_ref.path), st.attrs(cage.path)
+    steps = int(field_attrs.get("steps", 0) or 0)
+    result = {
+        "name": branch.name,
+        "parameters": branch.parameters,
+        "model": name,
+        "out_dir": branch.out_dir,
+        "tasks": [{"task": t, "state": s} for t, s in log.states],
+        "all_cached": all(s == "Cached" for _, s in log.states),
+        "final_loss": field_attrs.get("final") or {},
+        "satisfaction": field_attrs.get("satisfaction") or {},
+        "field": {"path": field_ref.path, "steps": steps, "converged": field_attrs.get("converged"),
+                  "optimise_wall_s": field_attrs.get("wall_time_s"),
+                  "s_per_step": (field_attrs["wall_time_s"] / steps) if steps and field_attrs.get("wall_time_s") else None,
+                  "resumed_from_checkpoint": checkpoints},
+        "cage": {"path": cage.path, "n_elements": cage_attrs.get("n_elements"), "genus": cage_attrs.get("genus"),
+                 "n_vertices": cage_attrs.get("n_vertices"), "wall_s": cage_attrs.get("wall_s")},
+        "metrics": _metrics(branch.out_dir),
+        "provenance_digest": prov_digest,
+        "worker": worker_identity(),
+        "started_at": started_at,
+        "wall_s": time.perf_counter() - start,
+        "status": "completed",
+    }
+    write_json_atomic(Path(branch.out_dir) / "branch.json", result)
+    return result
+
+
+def _checkpoints_before(task_: Any, params: dict[str, Any], objectives: list[str]) -> str | None:
+    """The newest checkpoint of this optimisation that exists before it runs (a resumed run), if any."""
+    if not objectives or task_.pipeline.done(params):
+        return None
+    out = task_.pipeline.output(params)
+    names = ArtifactStore(out.store).children(f"{out.model}/checkpoints/{out.digest}")
+    return names[-1] if names else None
+
+
+def _metrics(out_dir: str) -> dict[str, Any]:
+    """The branch's metrics.json without the provenance entries."""
+    import json
+
+    path = Path(out_dir) / "metrics.json"
+    if not path.is_file():
+        return {}
+    return {k: v for k, v in json.loads(path.read_text()).items() if not k.startswith("provenance.")}
+
+
+def _retry_transient(task_: Any, task_run: Any, state: Any) -> bool:
+    """Retry a branch unless it failed on the user's input (a retry could not help)."""
+    try:
+        state.result()
+    except (InputError, NeuralSlicerError):
+        return False
+    except Exception:
+        return True
+    return False
+
+
+@task(name="study-branch", cache_policy=NONE, persist_result=False, retries=1, retry_delay_seconds=2,
+      retry_condition_fn=_retry_transient, task_run_name="branch-{branch.name}")
+def study_branch(branch: Branch) -> dict[str, Any]:
+    """Run one branch's pipeline (its steps are cached tasks keyed by content; a retry resumes from checkpoints)."""
+    return run_pipeline(branch)

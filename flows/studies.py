@@ -1,0 +1,214 @@
+"""Study flows: batch over models, initial guesses, cage resolutions; branches fanned out on a Prefect task runner."""
+from __future__ import annotations
+
+import re
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger
+from prefect.task_runners import ThreadPoolTaskRunner
+from pydantic import BaseModel, ConfigDict, Field
+
+from flows.branch import Branch, load_branch_spec, make_user_field, study_branch
+from flows.study_report import write_study_outputs
+from neuralslicer.config import SliceConfig
+from neuralslicer.errors import InputError
+from storage import ArtifactStore
+
+INIT_KINDS = ("height", "heat", "user")
+
+
+class StudyOptions(BaseModel):
+    """How a study runs: where, on which engine, with which shared slicing configuration."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    out_dir: str = Field(description="study folder: DIR/study.md, DIR/study.json, DIR/<branch>/")
+    store: str | None = Field(None, description="artifact store (path or fsspec URL); default DIR/store.zarr")
+    config: SliceConfig = Field(default_factory=SliceConfig, description="slicing configuration shared by the branches")
+    up: str | None = Field(None, description="up axis override for every model")
+    dask: str | None = Field(None, description="Dask scheduler address, 'local' for a LocalCluster, None: threads")
+    dask_workers: int = Field(2, ge=1, description="workers of a '--dask local' cluster")
+    max_workers: int | None = Field(None, ge=1, description="threads of the default runner (default: one per branch)")
+
+
+def task_runner(dask: str | None, n_branches: int, dask_workers: int = 2, max_workers: int | None = None) -> Any:
+    """The task runner of a study: threads on this machine, a Dask LocalCluster ('local') or an existing scheduler."""
+    if not dask:
+        return ThreadPoolTaskRunner(max_workers=max_workers or max(n_branches, 1))
+    from prefect_dask import DaskTaskRunner
+
+    if dask == "local":
+        return DaskTaskRunner(cluster_class="distributed.LocalCluster",
+                              cluster_kwargs={"n_workers": dask_workers, "threads_per_worker": 1, "processes": True,
+                                              "host": "127.0.0.1", "dashboard_address": None})
+    return DaskTaskRunner(address=dask)
+
+
+def branch_name(text: str) -> str:
+    """A folder-safe branch name."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", text).strip("._") or "branch"
+
+
+@flow(name="neuralslicer-study-engine")
+def study_engine(kind: str, title: str, branches: list[Branch], out_dir: str) -> dict[str, Any]:
+    """Run every branch concurrently on this flow's task runner, then write study.json/study.md and Prefect artifacts."""
+    logger = get_run_logger()
+    start = time.perf_counter()
+    futures = [study_branch.submit(b) for b in branches]
+    results = []
+    for b, fut in zip(branches, futures):
+        fut.wait()
+        state = fut.state
+        if state.is_completed():
+            results.append(state.result())
+        else:
+            try:
+                state.result()
+                message = state.message or state.name
+            except Exception as exc:  # the branch's error, recorded in study.json
+                message = f"{type(exc).__name__}: {exc}"
+            logger.error("branch %s failed: %s", b.name, message)
+            results.append({"name": b.name, "parameters": b.parameters, "out_dir": b.out_dir, "status": "failed",
+                            "error": message})
+    study = {"kind": kind, "title": title, "branches": results, "wall_s": time.perf_counter() - start,
+             "out_dir": out_dir}
+    write_study_outputs(study, Path(out_dir), branches)
+    return study
+
+
+def run_study(kind: str, title: str, branches: list[Branch], options: StudyOptions) -> dict[str, Any]:
+    """Run the study engine as a subflow on the task runner the options ask for."""
+    runner = task_runner(options.dask, len(branches), options.dask_workers, options.max_workers)
+    engine = study_engine.with_options(task_runner=runner, flow_run_name=f"{kind}-{Path(options.out_dir).name}")
+    return engine(kind=kind, title=title, branches=branches, out_dir=options.out_dir)
+
+
+def _store(options: StudyOptions) -> str:
+    """The study's store (created), default DIR/store.zarr."""
+    return ArtifactStore(options.store or str(Path(options.out_dir) / "store.zarr")).root
+
+
+def initial_guess_branches(model: str, options: StudyOptions, kinds: list[str] | None = None,
+                           user_field: str | None = None) -> list[Branch]:
+    """Branches of the initial-guess study: one per initial field (height, heat, user) for one model."""
+    kinds = list(kinds or INIT_KINDS)
+    bad = [k for k in kinds if k not in INIT_KINDS]
+    if bad:
+        raise InputError("kinds", f"unknown initial guess(es) {', '.join(bad)}; use {', '.join(INIT_KINDS)}")
+    out, store = Path(options.out_dir), _store(options)
+    objectives = options.config.objectives
+    if objectives is not None and not objectives:
+        raise InputError("--objectives", "the initial-guess study optimises: give objectives (e.g. sf,po), not none")
+    if "user" in kinds and user_field is None:
+        user_field = str(default_user_field(model, options, out / "user_field.npz"))
+    branches = []
+    for kind in kinds:
+        cfg = options.config.model_copy(deep=True)
+        cfg.neural.init.kind = kind  # type: ignore[assignment]
+        branches.append(Branch(name=kind, model=model, up=options.up, config=cfg, out_dir=str(out / kind), store=store,
+                               user_field=user_field if kind == "user" else None,
+                               parameters={"init": kind, **({"user_field": user_field} if kind == "user" else {})}))
+    return branches
+
+
+def default_user_field(model: str, options: StudyOptions, path: Path) -> Path:
+    """A smooth user field over the model's build-frame bounds (tilted, gently curved height), saved to path."""
+    from neuralslicer.model.solid import implicit_solid
+
+    if path.is_file():
+        return path
+    solid = implicit_solid(load_branch_spec(model, options.up))
+    return make_user_field(solid.bounds, path)
+
+
+def cage_branches(model: str, options: StudyOptions, cage_elements: list[int]) -> list[Branch]:
+    """Branches of the cage-resolution study: one per cage element count."""
+    if not cage_elements:
+        raise InputError("--cage-elements", "give at least one element count")
+    out, store = Path(options.out_dir), _store(options)
+    branches = []
+    for n in cage_elements:
+        cfg = options.config.model_copy(deep=True)
+        cfg.cage.n_elements = int(n)
+        branches.append(Branch(name=f"cage_{n}", model=model, up=options.up, config=cfg, out_dir=str(out / f"cage_{n}"),
+                               store=store, parameters={"cage.n_elements": int(n)}))
+    return branches
+
+
+def batch_branches(models: list[str], options: StudyOptions) -> list[Branch]:
+    """Branches of a batch: one per model file or spec, each with the shared configuration."""
+    if not models:
+        raise InputError("models", "give at least one model or spec")
+    out, store = Path(options.out_dir), _store(options)
+    names: dict[str, int] = {}
+    branches = []
+    for m in models:
+        base = branch_name(Path(m).stem if Path(m).stem not in ("model", "spec") else Path(m).parent.name + "_" + Path(m).stem)
+        names[base] = names.get(base, 0) + 1
+        name = base if names[base] == 1 else f"{base}_{names[base]}"
+        branches.append(Branch(name=name, model=str(Path(m).resolve()), up=options.up, config=options.config,
+                               out_dir=str(out / name), store=store, parameters={"model": str(m)}))
+    return branches
+
+
+def _options(out_dir: str, store: str | None, config: SliceConfig | dict | None, up: str | None, dask: str | None,
+             dask_workers: int, max_workers: int | None) -> StudyOptions:
+    """StudyOptions from flow parameters (a config may come as a dict from a deployment)."""
+    cfg = config if isinstance(config, SliceConfig) else SliceConfig.model_validate(config or {})
+    return StudyOptions(out_dir=str(Path(out_dir).resolve()), store=store, config=cfg, up=up, dask=dask,
+                        dask_workers=dask_workers, max_workers=max_workers)
+
+
+@flow(name="neuralslicer-study-initial-guess")
+def initial_guess_study(model: str, out_dir: str, up: str | None = None, store: str | None = None,
+                        config: SliceConfig | None = None, kinds: list[str] | None = None,
+                        user_field: str | None = None, dask: str | None = None, dask_workers: int = 2,
+                        max_workers: int | None = None) -> dict[str, Any]:
+    """Initial-guess study of one model: height, heat and a user field, learning curves overlaid."""
+    options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
+    branches = initial_guess_branches(str(Path(model).resolve()), options, kinds, user_field)
+    return run_study("initial-guess", f"Initial-guess study: {Path(model).name}", branches, options)
+
+
+@flow(name="neuralslicer-study-cages")
+def cage_study(model: str, out_dir: str, cage_elements: list[int], up: str | None = None, store: str | None = None,
+               config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
+               max_workers: int | None = None) -> dict[str, Any]:
+    """Cage-resolution study of one model: genus, step time, final losses and metrics per cage element count."""
+    options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
+    branches = cage_branches(str(Path(model).resolve()), options, cage_elements)
+    return run_study("cages", f"Cage-resolution study: {Path(model).name}", branches, options)
+
+
+@flow(name="neuralslicer-study-batch")
+def batch_study(models: list[str], out_dir: str, up: str | None = None, store: str | None = None,
+                config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
+                max_workers: int | None = None) -> dict[str, Any]:
+    """Batch: slice every model (file or spec) with the shared configuration, fanned out."""
+    options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
+    return run_study("batch", f"Batch of {len(models)} model(s)", batch_branches(models, options), options)
+
+
+@flow(name="neuralslicer-slice-model")
+def slice_model(model: str, out_dir: str, up: str | None = None, store: str | None = None,
+                config: SliceConfig | None = None) -> dict[str, Any]:
+    """Slice one model file/spec (deployment-friendly parameters): the slicing flow with the store's cache settings."""
+    from flows.slice import slice_flow
+
+    spec = load_branch_spec(str(Path(model).resolve()), up)
+    out = Path(out_dir).resolve()
+    store_root = ArtifactStore(store or str(out / "store.zarr")).root
+    cfg = config if isinstance(config, SliceConfig) else SliceConfig.model_validate(config or {})
+    with ExitStack() as stack:
+        stack.enter_context(result_settings(store_root))
+        return slice_flow(spec=spec, out_dir=str(out), config=cfg, store=store_root)
+
+
+def result_settings(store: str) -> Any:
+    """Prefect settings that persist task results (cache records) beside the store (as `neuralslicer slice` does)."""
+    from neuralslicer.cli import cache_settings
+
+    return cache_settings(store)

@@ -1,0 +1,187 @@
+"""Command line of studies and comparisons: `neuralslicer study initial-guess|cages|batch` and `neuralslicer compare`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from neuralslicer.errors import InputError
+from neuralslicer.frames import UP_AXES
+
+
+def parse_counts(text: str) -> list[int]:
+    """`4000,8000,16000` -> [4000, 8000, 16000] (each at least 200)."""
+    try:
+        counts = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise InputError("--cage-elements", f"{text!r} is not a comma list of integers") from None
+    if not counts or min(counts) < 200:
+        raise InputError("--cage-elements", "give element counts of at least 200, e.g. 4000,8000,16000")
+    return counts
+
+
+def study_config(args: argparse.Namespace) -> Any:
+    """The shared SliceConfig of a study: --config, then the explicit options (as `neuralslicer slice` builds it)."""
+    from neuralslicer.cli import build_config, make_parser
+
+    defaults = make_parser().parse_args(["slice", "model", "--out", "out"])  # every slice option at its default
+    for key in ("config", "layer_height", "objectives", "max_steps", "network", "device", "seed"):
+        setattr(defaults, key, getattr(args, key))
+    defaults.cage_elements = getattr(args, "cage_elements_single", None)
+    return build_config(defaults)
+
+
+def cmd_study(args: argparse.Namespace) -> int:
+    """Run a study and print its table."""
+    from neuralslicer.cli import prefect_environment, run_in_out_dir
+
+    out_dir = Path(args.out).resolve()
+    config = study_config(args)
+    models = args.models if args.study == "batch" else [args.model]
+    for m in models:
+        if not Path(m).exists():
+            raise InputError(m, "no such file")
+    if args.dask is not None and args.dask != "local" and "://" not in args.dask and ":" not in args.dask:
+        raise InputError("--dask", f"{args.dask!r}: give a scheduler address (tcp://host:8786) or 'local'")
+    counts = parse_counts(args.cage_elements) if args.study == "cages" else None
+    if args.study == "initial-guess" and args.user_field is not None and not Path(args.user_field).is_file():
+        raise InputError(args.user_field, "no such file (--user-field takes an .npz with points and values)")
+
+    def job() -> int:
+        prefect_environment(out_dir)
+        from flows.studies import batch_study, cage_study, initial_guess_study
+        from neuralslicer.cli import cache_settings
+        from storage import ArtifactStore
+
+        store = ArtifactStore(args.store or str(out_dir / "store.zarr")).root
+        common = dict(out_dir=str(out_dir), up=args.up, store=store, config=config, dask=args.dask,
+                      dask_workers=args.dask_workers, max_workers=args.workers)
+        with cache_settings(store):
+            if args.study == "initial-guess":
+                kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+                study = initial_guess_study(model=args.model, kinds=kinds, user_field=args.user_field, **common)
+            elif args.study == "cages":
+                study = cage_study(model=args.model, cage_elements=counts, **common)
+            else:
+                study = batch_study(models=list(args.models), **common)
+        print_study(study)
+        return 0 if all(b.get("status") == "completed" for b in study["branches"]) else 1
+
+    return run_in_out_dir(out_dir, job)
+
+
+def print_study(study: dict[str, Any]) -> None:
+    """The study table on the terminal."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from flows.study_report import _fmt, table_rows
+
+    rows = table_rows(study)
+    cols: list[str] = []
+    for r in rows:
+        cols += [c for c in r if c not in cols]
+    table = Table(title=study["title"])
+    for c in cols:
+        table.add_column(c)
+    for r in rows:
+        table.add_row(*(_fmt(r.get(c)) for c in cols))
+    console = Console()
+    console.print(table)
+    console.print(f"study: {study['out_dir']}/study.md, study.json ({study['wall_s']:.1f} s)")
+
+
+def _slicing_options(p: argparse.ArgumentParser) -> None:
+    """The slicing options a study shares across its branches, and the engine options."""
+    p.add_argument("--out", required=True, help="study folder (study.md, study.json, one folder per branch)")
+    p.add_argument("--up", choices=UP_AXES, default=None, help="the model's up axis (default z, or the spec's)")
+    p.add_argument("--config", default=None, help="YAML configuration (sections: samples, cage, neural, layers)")
+    p.add_argument("--objectives", default=None, help="comma list of sf, sr, po, ca, or none (default sf,po[,sr])")
+    p.add_argument("--max-steps", type=int, default=None, help="optimisation step budget")
+    p.add_argument("--layer-height", type=float, default=None, help="target layer thickness in mm")
+    p.add_argument("--network", choices=("default", "paper", "small"), default=None, help="network size preset")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device (default auto)")
+    p.add_argument("--seed", type=int, default=None, help="random seed of the optimisation")
+    p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
+    p.add_argument("--dask", default=None, metavar="ADDRESS|local",
+                   help="run the branches on a Dask cluster: a scheduler address or 'local' (a LocalCluster)")
+    p.add_argument("--dask-workers", type=int, default=2, help="workers of a --dask local cluster (default 2)")
+    p.add_argument("--workers", type=int, default=None, help="concurrent branches without Dask (default: all)")
+
+
+def add_study_parser(sub: Any) -> None:
+    """Options of `neuralslicer study initial-guess|cages|batch`."""
+    from neuralslicer.cli import ArgumentParser
+
+    p = sub.add_parser("study", help="studies fanned out over initial guesses, cage resolutions or models")
+    studies = p.add_subparsers(dest="study", required=True, parser_class=ArgumentParser)
+    ig = studies.add_parser("initial-guess", help="one model with the height, heat and a user-field initial guess")
+    ig.add_argument("model", help="mesh, volume mesh (.tet) or model spec (.yaml)")
+    ig.add_argument("--kinds", default="height,heat,user", help="initial guesses to compare (default height,heat,user)")
+    ig.add_argument("--user-field", default=None,
+                    help=".npz with points (p,3, build frame) and values (p,); default: a generated smooth field")
+    _slicing_options(ig)
+    cg = studies.add_parser("cages", help="one model at several cage element counts")
+    cg.add_argument("model", help="mesh, volume mesh (.tet) or model spec (.yaml)")
+    cg.add_argument("--cage-elements", required=True, help="comma list of element counts, e.g. 4000,8000,16000")
+    _slicing_options(cg)
+    bt = studies.add_parser("batch", help="several models or specs with one configuration")
+    bt.add_argument("models", nargs="+", help="meshes, volume meshes or model specs")
+    bt.add_argument("--cage-elements", dest="cage_elements_single", type=int, default=None,
+                    help="target number of cage tets for every model")
+    _slicing_options(bt)
+    for q in (ig, cg, bt):
+        q.set_defaults(func=cmd_study)
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Print the differences in parameters and metrics of two output folders."""
+    from neuralslicer.compare import compare_runs, print_comparison
+
+    print_comparison(compare_runs(args.run_a, args.run_b, rtol=args.rtol, include_all=args.all),
+                     args.run_a, args.run_b)
+    return 0
+
+
+def add_compare_parser(sub: Any) -> None:
+    """Options of `neuralslicer compare RUN_A RUN_B`."""
+    p = sub.add_parser("compare", help="differences in parameters and metrics of two output folders")
+    p.add_argument("run_a", help="output folder of a slice (or a branch of a study)")
+    p.add_argument("run_b", help="another output folder")
+    p.add_argument("--rtol", type=float, default=0.0, help="numbers within this relative tolerance count as equal")
+    p.add_argument("--all", action="store_true", help="also list the entries that are equal")
+    p.set_defaults(func=cmd_compare)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m neuralslicer.cli_studies study|compare ...`: these commands with the `neuralslicer` error handling."""
+    import sys
+
+    from neuralslicer.cli import ArgumentParser
+    from neuralslicer.errors import NeuralSlicerError
+
+    parser = ArgumentParser(prog="neuralslicer", description="Neural Slicer studies and comparisons.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
+    add_study_parser(sub)
+    add_compare_parser(sub)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        if args.debug:
+            raise
+        print(f"neuralslicer: error: {exc.where}: {exc.message}", file=sys.stderr)
+        return 2
+    except NeuralSlicerError as exc:
+        if args.debug:
+            raise
+        print(f"neuralslicer: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
