@@ -83,6 +83,13 @@ def build_config(args: argparse.Namespace) -> Any:
         raise InputError("options", str(exc).splitlines()[-2].strip() if len(str(exc).splitlines()) > 1 else str(exc)) from None
 
 
+def validate_model(spec: Any) -> None:
+    """Read every file of the spec before any output is made: bad input fails here with one line."""
+    from neuralslicer.model.solid import implicit_solid
+
+    implicit_solid(spec)
+
+
 def cmd_slice(args: argparse.Namespace) -> int:
     """Slice a model (mesh, .tet or spec YAML) into curved layers and write the output contract."""
     from neuralslicer.model.spec import spec_for_file
@@ -94,6 +101,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
     if args.up is not None and spec.up != args.up:
         spec = spec.model_copy(update={"up": args.up})
     config = build_config(args)
+    validate_model(spec)
     if args.init not in (None, "height", "heat") and not Path(args.init).is_file():
         raise InputError(args.init, "no such file (--init takes height, heat or a file of field values)")
     out_dir = Path(args.out).resolve()

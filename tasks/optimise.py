@@ -32,6 +32,7 @@ class StoreCheckpoints:
     def __init__(self, store: ArtifactStore, root: str) -> None:
         """Checkpoints under `root` in `store`."""
         self.store, self.root = store, root
+        self.resumed_from: int | None = None
 
     def save(self, blob: bytes, step: int) -> None:
         """Write a checkpoint atomically, then prune all but the newest few."""
@@ -44,7 +45,8 @@ class StoreCheckpoints:
         names = self.store.children(self.root)
         if not names:
             return None
-        get_run_logger().info("resuming the optimisation from checkpoint %s", names[-1])
+        self.resumed_from = int(self.store.attrs(f"{self.root}/{names[-1]}")["step"])
+        get_run_logger().info("resuming the optimisation from step %d", self.resumed_from)
         return self.store.read_blob(f"{self.root}/{names[-1]}")
 
 
@@ -87,4 +89,4 @@ def run_optimisation(
         )
     arrays, attrs = result.to_arrays()
     get_run_logger().info("optimised in %d steps (%.1f s): %s", result.steps, result.wall_time_s, result.final)
-    return arrays, {**attrs, "objectives": list(objectives), "kind": "neural"}
+    return arrays, {**attrs, "objectives": list(objectives), "kind": "neural", "resumed_from_step": checkpoints.resumed_from}

@@ -1,0 +1,241 @@
+"""Benchmark of the neural optimisation: ARAP solve (sparse factor vs dense Cholesky), time per
+optimisation step and peak memory for the default and `paper` networks, and the Ring experiment.
+
+    python benchmarks/bench_neural.py solve            # sparse vs dense solve at 5k/20k/50k tets
+    python benchmarks/bench_neural.py steps            # time/step + peak memory per size and network
+    python benchmarks/bench_neural.py ring             # Ring, SF only: overhang vs planar, 3 initial guesses
+    python benchmarks/bench_neural.py all
+
+Prints a table per part and merges the figures into benchmarks/results/bench_neural.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg as sla
+import torch
+
+from neuralslicer.neural import NeuralConfig, optimise_field
+from neuralslicer.neural.deformation import ArapDeformation
+from neuralslicer.neural.optimise import FieldProblem
+from neuralslicer.neural.synthetic import grid_tets
+
+RESULTS = Path(__file__).parent / "results" / "bench_neural.json"
+#: grid shapes giving about 5k, 20k and 50k tets (6 per cell)
+SIZES = {"5k": (10, 10, 9), "20k": (16, 16, 13), "50k": (22, 22, 18)}
+
+
+def _merge(key: str, value) -> None:
+    """Merge one part's figures into the JSON results file."""
+    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    data[key] = value
+    data["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                       "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+                       "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(data, indent=2))
+
+
+def _sphere_samples(lo: np.ndarray, hi: np.ndarray, n: int = 4000, k: int = 10):
+    """Fibonacci samples on a sphere inside the box (synthetic B)."""
+    from scipy.spatial import cKDTree
+
+    c, r = 0.5 * (lo + hi), 0.4 * float(np.min(hi - lo))
+    i = np.arange(n) + 0.5
+    phi, th = np.arccos(1 - 2 * i / n), math.pi * (1 + 5**0.5) * i
+    nrm = np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], axis=1)
+    pts = c + r * nrm
+    dist, knn = cKDTree(pts).query(pts, k=k + 1)
+    return pts, nrm, (dist[:, 1:] ** 2).mean(axis=1), knn[:, 1:], nrm[:, 2] < -0.99
+
+
+def _cage(size: str):
+    """Structured cage of the named size in a 100 mm box."""
+    shape = SIZES[size]
+    return grid_tets(shape, np.zeros(3), 100.0 * np.asarray(shape) / max(shape))
+
+
+def bench_solve(sizes: list[str], repeats: int = 20) -> list[dict]:
+    """Per-solve time and memory: our sparse factor vs a dense Cholesky of the same K."""
+    rows = []
+    for size in sizes:
+        V, T = _cage(size)
+        t = time.perf_counter()
+        arap = ArapDeformation(V, T)
+        t_factor = time.perf_counter() - t
+        rhs = np.random.default_rng(0).standard_normal((len(V), 3))
+        arap._solve_xyz(rhs)
+        t = time.perf_counter()
+        for _ in range(repeats):
+            x = arap._solve_xyz(rhs)
+        t_solve = (time.perf_counter() - t) / repeats
+        lu = getattr(arap._solve_xyz, "__self__", None)
+        nnz_factor = int(lu.L.nnz + lu.U.nnz) if lu is not None else -1
+        row = {"size": size, "tets": len(T), "vertices": len(V), "backend": arap.backend,
+               "nnz_K": int(arap.K.nnz), "nnz_factor": nnz_factor,
+               "sparse_factor_s": t_factor, "sparse_solve_s": t_solve,
+               "sparse_factor_MB": nnz_factor * 12 / 2**20}
+        n = len(V)
+        if n <= 12_000:
+            K = arap.K.toarray()
+            t = time.perf_counter()
+            c = sla.cho_factor(K, lower=True)
+            row["dense_factor_s"] = time.perf_counter() - t
+            sla.cho_solve(c, rhs)
+            t = time.perf_counter()
+            for _ in range(max(3, repeats // 4)):
+                xd = sla.cho_solve(c, rhs)
+            row["dense_solve_s"] = (time.perf_counter() - t) / max(3, repeats // 4)
+            row["dense_matrix_MB"] = n * n * 8 / 2**20
+            row["max_abs_diff"] = float(np.abs(xd - x).max())
+            row["speedup_per_solve"] = row["dense_solve_s"] / t_solve
+            del K, c
+        rows.append(row)
+    print(f"\n{'size':>5} {'tets':>7} {'verts':>6} {'nnz(K)':>8} {'nnz(LU)':>9} {'fact s':>8} "
+          f"{'solve ms':>9} {'dense fact s':>12} {'dense ms':>9} {'speedup':>8} {'dense MB':>9} {'LU MB':>7}")
+    for r in rows:
+        print(f"{r['size']:>5} {r['tets']:>7} {r['vertices']:>6} {r['nnz_K']:>8} {r['nnz_factor']:>9} "
+              f"{r['sparse_factor_s']:>8.3f} {1e3 * r['sparse_solve_s']:>9.3f} "
+              f"{r.get('dense_factor_s', float('nan')):>12.3f} {1e3 * r.get('dense_solve_s', float('nan')):>9.2f} "
+              f"{r.get('speedup_per_solve', float('nan')):>8.1f} {r.get('dense_matrix_MB', float('nan')):>9.1f} "
+              f"{r['sparse_factor_MB']:>7.2f}")
+    return rows
+
+
+def _step_case(size: str, network: str, steps: int, device: str) -> dict:
+    """Time per optimisation step (forward, backward, Adam) and peak memory, in this process."""
+    V, T = _cage(size)
+    lo, hi = V.min(0), V.max(0)
+    pts, nrm, area, knn, pf = _sphere_samples(lo, hi)
+    cfg = NeuralConfig.model_validate({"network": network, "device": device})
+    t = time.perf_counter()
+    prob = FieldProblem(V, T, pts, nrm, area, knn, pf, None, None, None, cfg, 0.0)
+    setup = time.perf_counter() - t
+    torch.manual_seed(0)
+    fields = prob.new_fields()
+    opt = torch.optim.Adam(fields.parameters(), lr=1e-3)
+    if prob.device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    times = []
+    for i in range(steps + 1):
+        if prob.device.type == "cuda":
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        total, _ = prob.evaluate(fields)
+        opt.zero_grad()
+        total.backward()
+        opt.step()
+        if prob.device.type == "cuda":
+            torch.cuda.synchronize()
+        if i:  # the first step warms up
+            times.append(time.perf_counter() - t)
+    out = {"size": size, "tets": len(T), "network": network, "device": str(prob.device),
+           "setup_s": setup, "step_s": float(np.median(times)), "steps_timed": steps,
+           "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    if prob.device.type == "cuda":
+        out["peak_cuda_MB"] = torch.cuda.max_memory_allocated() / 2**20
+    return out
+
+
+def bench_steps(sizes: list[str], networks: list[str], steps: int, device: str) -> list[dict]:
+    """Each (size, network) in a fresh subprocess so that peak memory is its own."""
+    rows = []
+    for network in networks:
+        for size in sizes:
+            n = steps if network != "paper" or device != "cpu" else max(1, steps // 5)
+            cmd = [sys.executable, __file__, "_step", size, network, str(n), device]
+            res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+            r = rows[-1]
+            print(f"{r['network']:>8} {r['size']:>4} {r['tets']:>7} tets {r['device']:>5}: "
+                  f"{1e3 * r['step_s']:9.1f} ms/step, peak RSS {r['peak_rss_MB']:8.0f} MB"
+                  + (f", peak CUDA {r['peak_cuda_MB']:.0f} MB" if "peak_cuda_MB" in r else ""), flush=True)
+    return rows
+
+
+def ring_inputs(n_elements: int = 5000, n_samples: int = 8000) -> dict[str, np.ndarray]:
+    """Ring (y-up) -> solid -> samples B -> cage, with the project's own modules."""
+    from neuralslicer.cage import CageConfig, build_cage, interior_points
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.samples import surface_samples
+
+    ring = Path(__file__).resolve().parents[2] / "shared" / "data" / "ring.tet"
+    ring = ring if ring.exists() else Path("/work/shared/data/ring.tet")
+    solid = implicit_solid(spec_for_file(ring, up="y"))
+    B = surface_samples(solid, n_samples)
+    check = np.concatenate([interior_points(solid.H, solid.bounds, 2000), B.points])
+    cage = build_cage(solid.H, solid.bounds, solid.volume(), CageConfig(n_elements=n_elements), check)
+    return {"CV": cage.vertices, "CT": cage.tets, "P": B.points, "N": B.normals, "A": B.areas,
+            "K": B.knn, "F": B.on_platform, "pz": np.float64(solid.platform_z)}
+
+
+def bench_ring(kinds: list[str], cache: Path | None) -> list[dict]:
+    """Ring, SF only, default settings: overhang fraction vs planar, time, per initial guess."""
+    if cache is not None and cache.exists():
+        d = dict(np.load(cache))
+    else:
+        d = ring_inputs()
+        if cache is not None:
+            np.savez(cache, **d)
+    rows = []
+    for kind in kinds:
+        cfg = NeuralConfig.model_validate({"init": {"kind": kind}})
+        user = None
+        if kind == "user":  # a user field: distance from the ring's centre axis, flipped (a 'dome')
+            c = np.array([0.0, 0.0, 55.0])
+            user = -np.linalg.norm((d["CV"] - c)[:, [0, 2]], axis=1)
+        r = optimise_field(d["CV"], d["CT"], d["P"], d["N"], d["A"], d["K"], d["F"], config=cfg,
+                           platform_z=float(d["pz"]), user_field=user)
+        s = r.satisfaction
+        row = {"init": kind, "tets": int(len(d["CT"])), "samples": int(len(d["P"])),
+               "steps": r.steps, "converged": r.converged, "wall_s": r.wall_time_s,
+               "overhang": s["overhang_area_fraction"], "planar_overhang": s["planar_overhang_area_fraction"],
+               "ratio_to_planar": s["overhang_area_fraction"] / s["planar_overhang_area_fraction"],
+               "final": r.final, "pretrain_final_mse": float(r.pretrain_history[-1]) if len(r.pretrain_history) else None}
+        rows.append(row)
+        print(f"ring init={kind:>6}: {row['tets']} tets, {r.steps} steps ({'converged' if r.converged else 'budget'}),"
+              f" {r.wall_time_s:6.1f} s, overhang {100 * row['overhang']:.2f}% vs planar"
+              f" {100 * row['planar_overhang']:.2f}% ({100 * row['ratio_to_planar']:.1f}%), final loss {r.final['total']:.5f}",
+              flush=True)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line entry point."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "_step":
+        size, network, steps, device = argv[1], argv[2], int(argv[3]), argv[4]
+        print(json.dumps(_step_case(size, network, steps, device)))
+        return
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("part", choices=["solve", "steps", "ring", "all"])
+    p.add_argument("--sizes", default="5k,20k,50k")
+    p.add_argument("--networks", default="default,paper")
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--inits", default="height,heat,user")
+    p.add_argument("--ring-cache", default="benchmarks/results/ring_inputs.npz")
+    a = p.parse_args(argv)
+    sizes = a.sizes.split(",")
+    if a.part in ("solve", "all"):
+        _merge("solve", bench_solve(sizes))
+    if a.part in ("steps", "all"):
+        rows = bench_steps(sizes, a.networks.split(","), a.steps, a.device)
+        _merge(f"steps_{rows[0]['device'] if rows else a.device}", rows)
+    if a.part in ("ring", "all"):
+        _merge("ring", bench_ring(a.inits.split(","), Path(a.ring_cache) if a.ring_cache else None))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""Shared fixtures: one Prefect test server for the whole session, in a temporary PREFECT_HOME."""
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+_HOME = tempfile.mkdtemp(prefix="neuralslicer-prefect-")
+os.environ.setdefault("PREFECT_HOME", _HOME)
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("DO_NOT_TRACK", "1")
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def prefect_server() -> Iterator[None]:
+    """One ephemeral Prefect server (SQLite) for all flow tests of the session."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+@pytest.fixture(scope="session")
+def ring_path() -> Path:
+    """The Ring of the paper (y-up .tet), from ../shared/data."""
+    path = SHARED_DATA / "ring.tet"
+    if not path.is_file():
+        pytest.skip(f"{path} is not available")
+    return path
+
+
+def l_part_mesh() -> trimesh.Trimesh:
+    """An L-shaped prism, 20 x 10 x 16 mm, z-up: a 12 mm arm at z 12..16 overhangs the platform."""
+    uv = np.array([[0, 0], [8, 0], [8, 12], [20, 12], [20, 16], [0, 16]], dtype=float)
+    tri = np.array([[0, 1, 2], [0, 2, 5], [2, 3, 4], [2, 4, 5]])
+    prism = trimesh.creation.extrude_triangulation(uv, tri, height=10.0)
+    v = prism.vertices[:, [0, 2, 1]]  # extrusion along y; swapping axes mirrors, so flip the faces
+    return trimesh.Trimesh(v, prism.faces[:, ::-1], process=True)
+
+
+@pytest.fixture(scope="session")
+def small_part(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The L-shaped part as an STL file."""
+    path = tmp_path_factory.mktemp("models") / "lpart.stl"
+    l_part_mesh().export(path)
+    return path
+
+
+def fast_config(**overrides: object) -> dict:
+    """A configuration that slices a small part in seconds (few samples, a small cage, few steps)."""
+    cfg: dict = {
+        "samples": {"n_samples": 2000},
+        "cage": {"n_elements": 1500},
+        "neural": {"optim": {"max_steps": 20, "checkpoint_every": 5}},
+        "layers": {"layer_height": 1.0, "thickness_samples": 2000},
+        "toolpath": {"line_width": 1.0, "spacing": 1.0, "n_shells": 1, "infill_density": 0.5},
+    }
+    for key, value in overrides.items():
+        cfg[key] = value
+    return cfg
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A seeded random generator."""
+    return np.random.default_rng(0)

@@ -1,0 +1,155 @@
+"""The slicing flow end to end: output contract, cache hits, selective reruns, resume after a kill."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from conftest import REPO, fast_config
+from neuralslicer.cli import main
+
+pytestmark = pytest.mark.usefixtures("prefect_server")
+
+
+def slice_cmd(model: Path, out: Path, cfg: Path, *extra: str) -> list[str]:
+    """Arguments of `neuralslicer slice` for a small, fast run."""
+    return ["slice", str(model), "--out", str(out), "--config", str(cfg), *extra]
+
+
+def write_config(path: Path, **overrides: object) -> Path:
+    """A fast configuration file."""
+    path.write_text(yaml.safe_dump(fast_config(**overrides)))
+    return path
+
+
+def states(out: Path) -> dict[str, str]:
+    """Task -> state of the last run in out."""
+    return {r["task"]: r["state"] for r in json.loads((out / "run.json").read_text())["tasks"]}
+
+
+def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
+    cfg = write_config(tmp_path / "cfg.yaml")
+    out = tmp_path / "run"
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
+    first = states(out)
+    assert set(first.values()) == {"Completed"}
+    for name in ("model.ply", "field.vtu", "metrics.json", "report.md", "samples_B.ply", "print.gcode",
+                 "toolpaths/waypoints.csv", "toolpaths.vtp", "figures/layers.png", "figures/sf_histogram.png"):
+        assert (out / name).is_file(), name
+    layers = sorted((out / "layers").glob("layer_*.ply"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert len(layers) == metrics["n_layers"] > 10
+    for key in ("n_cage_elements", "sf.overhang_area_fraction", "sf.overhang_area_fraction_planar", "wall_s.cage",
+                "model_genus", "cage_genus", "toolpath_length_mm", "n_waypoints", "estimated_print_time_s",
+                "material_mm3", "collisions"):
+        assert key in metrics, key
+    # the identity field gives planar layers: the same overhang as planar, layers at increasing heights
+    assert metrics["sf.overhang_area_fraction"] == pytest.approx(metrics["sf.overhang_area_fraction_planar"])
+    # the arm's underside (12 x 10 mm² of the 992 mm² of surface off the platform) overhangs
+    assert metrics["sf.overhang_area_fraction_planar"] == pytest.approx(120 / 992, rel=0.1)
+    z = [trimesh.load(p).vertices[:, 2].mean() for p in layers]
+    assert np.all(np.diff(z) > 0)
+    model = trimesh.load(out / "model.ply")
+    assert model.is_watertight and model.volume == pytest.approx(1760.0, rel=1e-6)
+
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
+    assert set(states(out).values()) == {"Cached"}
+
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "none", "--layer-height", "0.7")) == 0
+    after = states(out)
+    assert [t for t, s in after.items() if s == "Cached"] == ["model", "solid", "samples", "cage", "field"]
+    assert [t for t, s in after.items() if s == "Completed"] == ["layers", "toolpaths", "export"]
+    assert json.loads((out / "metrics.json").read_text())["n_layers"] > metrics["n_layers"]
+    assert len(list((out / "layers").glob("layer_*.ply"))) == json.loads((out / "metrics.json").read_text())["n_layers"]
+
+
+def test_layers_lie_inside_the_solid(tmp_path, small_part):
+    cfg = write_config(tmp_path / "cfg.yaml")
+    out = tmp_path / "run"
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "sf", "--max-steps", "10")) == 0
+    from neuralslicer.model import implicit_solid, spec_for_file
+
+    solid = implicit_solid(spec_for_file(small_part))
+    for path in sorted((out / "layers").glob("layer_*.ply")):
+        v = trimesh.load(path, process=False).vertices
+        assert solid.H(v).max() <= 1e-6, path.name
+
+
+def test_kill_and_resume(tmp_path, small_part):
+    cfg = write_config(
+        tmp_path / "cfg.yaml",
+        neural={"optim": {"max_steps": 60, "checkpoint_every": 2, "convergence_window": 1000}},
+    )
+    out = tmp_path / "run"
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
+    cmd = [sys.executable, "-m", "neuralslicer.cli", *slice_cmd(small_part, out, cfg, "--objectives", "sf,po")]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    ckpt_root = out / "store.zarr" / "lpart" / "checkpoints"
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            steps = [p for p in ckpt_root.glob("*/step_*") if (p / "zarr.json").is_file()] if ckpt_root.exists() else []
+            if len(steps) >= 2:
+                break
+            time.sleep(0.2)
+        assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-2000:]}"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    assert not (out / "metrics.json").exists()
+    rerun = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    st = states(out)
+    assert [st[t] for t in ("model", "solid", "samples", "cage")] == ["Cached"] * 4
+    assert st["field"] == "Completed"
+    from storage import ArtifactStore
+
+    store = ArtifactStore(out / "store.zarr")
+    field = [f"lpart/field/{d}" for d in store.children("lpart/field")]
+    attrs = store.attrs(field[0])
+    assert attrs["resumed_from_step"] >= 2
+    assert attrs["steps"] == 60
+    assert len(store.read(field[0], ["history/total"])[0]["history/total"]) == 60
+
+
+BAD = {
+    "missing": (None, "no such file"),
+    "garbage.stl": (b"this is not a mesh\x00\x01\x02", ""),
+    "empty.stl": (b"", ""),
+    "nan.tet": (b"4 vertices\n1 tets\n0 0 0\n1 0 0\n0 nan 0\n0 0 1\n4 0 1 2 3\n", "nan"),
+    "flat.obj": (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n", ""),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD))
+def test_bad_input_is_one_line_exit_2_and_no_output(tmp_path, name, capsys):
+    content, needle = BAD[name]
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content)
+    out = tmp_path / "out"
+    code = main(["slice", str(path), "--out", str(out), "--objectives", "none"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("neuralslicer: error: ") and str(path) in err
+    assert needle.lower() in err.lower()
+    assert not out.exists()
+
+
+def test_unknown_option_is_one_line_exit_2(tmp_path, small_part, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["slice", str(small_part), "--out", str(tmp_path / "o"), "--frobnicate", "3"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--frobnicate" in err
+    assert not (tmp_path / "o").exists()

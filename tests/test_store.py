@@ -1,0 +1,71 @@
+"""The artifact store: atomic groups, completion flags, checkpoints, cache keys."""
+import numpy as np
+import pytest
+import zarr
+
+from storage import ArtifactRef, ArtifactStore, atomic_path, digest
+
+
+def test_write_read_roundtrip_with_nested_names(tmp_path):
+    store = ArtifactStore(tmp_path / "s.zarr")
+    store.write("m/step/abc", {"x": np.arange(5.0), "history/total": np.ones(3)}, {"p": 1, "v": np.float64(2.5)})
+    arrays, attrs = store.read("m/step/abc")
+    assert np.array_equal(arrays["x"], np.arange(5.0))
+    assert np.array_equal(arrays["history/total"], np.ones(3))
+    assert attrs["p"] == 1 and attrs["v"] == 2.5
+    assert store.exists("m/step/abc")
+    assert not store.exists("m/step/other")
+
+
+def test_crash_during_write_leaves_no_visible_group_and_keeps_previous(tmp_path):
+    store = ArtifactStore(tmp_path / "s.zarr")
+    store.write("m/step/k", {"x": np.zeros(3)}, {"version": 1})
+    bad = np.array([object()], dtype=object)  # fails after the first array was written
+    with pytest.raises(TypeError):
+        store.write("m/step/k", {"x": np.ones(3), "y": bad}, {"version": 2})
+    with pytest.raises(TypeError):
+        store.write("m/step/new", {"x": np.ones(3), "y": bad}, {})
+    arrays, attrs = store.read("m/step/k")
+    assert attrs["version"] == 1 and np.array_equal(arrays["x"], np.zeros(3))
+    assert not store.exists("m/step/new")
+    assert store.children("m/step") == ["k"]
+
+
+def test_incomplete_group_is_not_read_as_valid(tmp_path):
+    store = ArtifactStore(tmp_path / "s.zarr")
+    g = zarr.open_group(store.root, mode="w", path="m/step/half")
+    g.create_array("x", data=np.ones(4))  # no completion flag: what a crash mid-write would leave on a remote store
+    assert not store.exists("m/step/half")
+    with pytest.raises(FileNotFoundError):
+        store.read("m/step/half")
+
+
+def test_blob_and_children_and_remove(tmp_path):
+    store = ArtifactStore(tmp_path / "s.zarr")
+    for step in (5, 10, 15):
+        store.write_blob(f"m/ckpt/step_{step:08d}", bytes([step]) * 10, {"step": step})
+    assert store.children("m/ckpt") == ["step_00000005", "step_00000010", "step_00000015"]
+    assert store.read_blob("m/ckpt/step_00000010") == bytes([10]) * 10
+    store.remove("m/ckpt/step_00000005")
+    assert store.children("m/ckpt") == ["step_00000010", "step_00000015"]
+
+
+def test_atomic_path_keeps_old_file_on_failure(tmp_path):
+    target = tmp_path / "a.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_digest_uses_artifact_digests_and_model_fields():
+    from neuralslicer.cage import CageConfig
+
+    a = ArtifactRef("/s1", "m/x/1", "d1")
+    b = ArtifactRef("/s2", "other/path", "d1")
+    assert digest("cage", a, CageConfig()) == digest("cage", b, CageConfig())
+    assert digest("cage", a, CageConfig()) != digest("cage", a, CageConfig(n_elements=5000))
+    assert digest("cage", a) != digest("cage", ArtifactRef("/s1", "m/x/1", "d2"))
