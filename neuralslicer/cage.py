@@ -13,8 +13,8 @@ from skimage.measure import marching_cubes
 from neuralslicer.errors import NeuralSlicerError
 from neuralslicer.tetmesh import TetLocator, boundary_faces, orient_tets, tet_volumes
 
-# fTetWild produces about this many times more tets than (offset volume) / (regular tet of the ideal edge)
-TETWILD_DENSITY = 2.0
+# fTetWild's envelope (how far its boundary may move from the offset surface), as a fraction of the edge
+ENVELOPE = 0.25
 
 
 class CageConfig(BaseModel):
@@ -70,11 +70,13 @@ def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, of
 
 
 def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, np.ndarray]:
-    """fTetWild on the offset surface at an absolute ideal edge length."""
+    """fTetWild on the offset surface at an absolute ideal edge length, with an envelope of ENVELOPE * edge."""
+    diag = float(np.linalg.norm(surface.bounds[1] - surface.bounds[0]))
     v, t = pytetwild.tetrahedralize(
         np.asarray(surface.vertices, dtype=np.float64),
         np.asarray(surface.faces, dtype=np.int32),
         edge_length_abs=edge,
+        epsilon=ENVELOPE * edge / diag,
         quiet=True,
     )
     t = t.astype(np.int64)
@@ -103,14 +105,13 @@ def build_cage(
     """Offset surface of the solid, tetrahedralized at the target element count, verified to contain `check_points`."""
     bounds = np.asarray(bounds, dtype=np.float64)
     diag = float(np.linalg.norm(bounds[1] - bounds[0]))
-    # ideal edge from the target count over an estimate of the cage volume
-    edge = (6 * np.sqrt(2) * volume * TETWILD_DENSITY / config.n_elements) ** (1 / 3)
+    # ideal edge of a regular tet from the target count over a first guess of the cage volume (twice the solid's)
+    edge = (6 * np.sqrt(2) * 2 * volume / config.n_elements) ** (1 / 3)
     h = min(edge / 2, diag / 40)
-    offset = config.offset if config.offset is not None else max(1.5 * h, 0.01 * diag)
+    offset = config.offset if config.offset is not None else max(1.5 * h, 0.01 * diag) + ENVELOPE * edge
     for _attempt in range(4):
         surface = offset_surface(H, bounds, offset, h)
-        cage_volume = abs(surface.volume)
-        edge = (6 * np.sqrt(2) * cage_volume * TETWILD_DENSITY / config.n_elements) ** (1 / 3)
+        edge = (6 * np.sqrt(2) * abs(surface.volume) / config.n_elements) ** (1 / 3)
         v, t = _tetrahedralize(surface, edge)
         ratio = len(t) / config.n_elements
         if abs(ratio - 1) > config.tolerance:

@@ -166,13 +166,7 @@ def trim(
     einv = einv.ravel()
     ins = np.where(inside[ue[:, 0]], ue[:, 0], ue[:, 1])
     out = np.where(inside[ue[:, 0]], ue[:, 1], ue[:, 0])
-    lo_p, hi_p = pts[ins].copy(), pts[out].copy()
-    for _ in range(iterations):
-        mid = 0.5 * (lo_p + hi_p)
-        m_in = H(mid) <= 0
-        lo_p[m_in] = mid[m_in]
-        hi_p[~m_in] = mid[~m_in]
-    cross = lo_p  # on the inside of H = 0 within 2^-iterations of the edge length
+    cross = edge_crossings(pts[ins], pts[out], h[ins], h[out], H, iterations)
     base = len(pts)
     allpts = np.concatenate([pts, cross])
     c01 = base + einv[: len(mixed)]
@@ -185,6 +179,44 @@ def trim(
     new_faces = np.concatenate([keep, tri_a, tri_b, tri_c])
     new_src = np.concatenate([src, mixed[one], mixed[two], mixed[two]])
     return _compact(allpts, new_faces, new_src)
+
+
+def edge_crossings(
+    p_in: np.ndarray, p_out: np.ndarray, h_in: np.ndarray, h_out: np.ndarray,
+    H: Callable[[np.ndarray], np.ndarray], iterations: int = 30, tol: float = 1e-7,
+) -> np.ndarray:
+    """Points on segments [p_in, p_out] (H <= 0 at p_in, > 0 at p_out) with H <= 0 and |H| <= tol where reachable.
+
+    Illinois false position on the segment parameter (a few H evaluations for a distance-like H), then
+    bisection for whatever has not converged; the returned point is always the inside end of the bracket.
+    """
+    lo_t, hi_t = np.zeros(len(p_in)), np.ones(len(p_in))
+    lo_h, hi_h = h_in.astype(np.float64).copy(), h_out.astype(np.float64).copy()
+    best = p_in.copy()
+    best_h = lo_h.copy()
+    active = np.flatnonzero(np.abs(best_h) > tol)
+    side = np.zeros(len(p_in), dtype=np.int8)
+    for it in range(iterations):
+        if len(active) == 0:
+            break
+        a, b = lo_h[active], hi_h[active]
+        if it < iterations // 2:
+            t = lo_t[active] + (hi_t[active] - lo_t[active]) * np.clip(a / (a - b), 0.01, 0.99)
+        else:
+            t = 0.5 * (lo_t[active] + hi_t[active])
+        pt = p_in[active] + t[:, None] * (p_out[active] - p_in[active])
+        ht = H(pt)
+        inside = ht <= 0
+        i_in, i_out = active[inside], active[~inside]
+        lo_t[i_in], lo_h[i_in] = t[inside], ht[inside]
+        best[i_in], best_h[i_in] = pt[inside], ht[inside]
+        hi_t[i_out], hi_h[i_out] = t[~inside], ht[~inside]
+        # Illinois: halve the value of an end that stayed twice in a row
+        hi_h[i_in[side[i_in] == 1]] *= 0.5
+        lo_h[i_out[side[i_out] == -1]] *= 0.5
+        side[i_in], side[i_out] = 1, -1
+        active = active[(np.abs(best_h[active]) > tol) & ((hi_t[active] - lo_t[active]) > 1e-12)]
+    return best
 
 
 def _compact(pts: np.ndarray, faces: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -234,33 +266,54 @@ def extract_layers(
     isovalues: np.ndarray,
     config: LayerConfig,
     progress: Callable[[int, int], None] | None = None,
+    batch: int = 64,
 ) -> Layers:
-    """Isosurfaces of G at the isovalues, trimmed by H <= 0, small pieces dropped, in print order."""
+    """Isosurfaces of G at the isovalues, trimmed by H <= 0, small pieces dropped, in print order.
+
+    Layers are trimmed in batches (one H evaluation per batch and crossing iteration, not per layer).
+    """
     edges, tet_edge = tet_edges(cage_tets)
     meshes, kept_iso = [], []
     dropped_pieces, dropped_area = 0, 0.0
-    for i, iso in enumerate(isovalues):
-        (pts, faces, src), = _marching(cage_vertices, cage_tets, G, np.array([iso]), lpd, edges, tet_edge)
+    for start in range(0, len(isovalues), batch):
+        isos = np.asarray(isovalues[start : start + batch])
+        parts = _marching(cage_vertices, cage_tets, G, isos, lpd, edges, tet_edge)
+        offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
+        pts = np.concatenate([p for p, _, _ in parts])
+        faces = np.concatenate([f + o for (_, f, _), o in zip(parts, offsets)]).astype(np.int64)
+        src_tet = np.concatenate([t for _, _, t in parts])
+        face_layer = np.concatenate([np.full(len(f), i) for i, (_, f, _) in enumerate(parts)])
         if len(faces):
             pts, faces, src = trim(pts, faces, H, config.trim_iterations)
-        if len(faces):
-            mesh = trimesh.Trimesh(pts, faces, process=False)
-            face_lpd = lpd[src]
-            vlpd = np.zeros_like(pts)
-            np.add.at(vlpd, faces.ravel(), np.repeat(face_lpd * mesh.area_faces[:, None], 3, axis=0))
-            vlpd /= np.maximum(np.linalg.norm(vlpd, axis=1, keepdims=True), 1e-300)
-            mesh.vertex_attributes["lpd"] = vlpd
-            mesh, n_drop, a_drop = _drop_small_pieces(mesh, config.min_area)
+            src_tet, face_layer = src_tet[src], face_layer[src]
+        for i, iso in enumerate(isos):
+            mesh, n_drop, a_drop = _layer_mesh(pts, faces[face_layer == i], lpd[src_tet[face_layer == i]], config.min_area)
             dropped_pieces += n_drop
             dropped_area += a_drop
-            if len(mesh.faces):
+            if mesh is not None:
                 mesh.metadata["isovalue"] = float(iso)
                 meshes.append(mesh)
                 kept_iso.append(float(iso))
         if progress is not None:
-            progress(i + 1, len(isovalues))
+            progress(min(start + batch, len(isovalues)), len(isovalues))
     report = {"dropped_pieces": int(dropped_pieces), "dropped_area_mm2": float(dropped_area)}
     return Layers(meshes, np.asarray(kept_iso), report)
+
+
+def _layer_mesh(
+    pts: np.ndarray, faces: np.ndarray, face_lpd: np.ndarray, min_area: float
+) -> tuple[trimesh.Trimesh | None, int, float]:
+    """One layer's mesh with per-vertex LPD (area-weighted), small pieces dropped; None when nothing is left."""
+    if len(faces) == 0:
+        return None, 0, 0.0
+    used, inv = np.unique(faces, return_inverse=True)
+    mesh = trimesh.Trimesh(pts[used], inv.reshape(-1, 3), process=False)
+    vlpd = np.zeros((len(used), 3))
+    np.add.at(vlpd, mesh.faces.ravel(), np.repeat(face_lpd * mesh.area_faces[:, None], 3, axis=0))
+    vlpd /= np.maximum(np.linalg.norm(vlpd, axis=1, keepdims=True), 1e-300)
+    mesh.vertex_attributes["lpd"] = vlpd
+    mesh, n_drop, a_drop = _drop_small_pieces(mesh, min_area)
+    return (mesh if len(mesh.faces) else None), n_drop, a_drop
 
 
 def _drop_small_pieces(mesh: trimesh.Trimesh, min_area: float) -> tuple[trimesh.Trimesh, int, float]:

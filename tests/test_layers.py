@@ -48,7 +48,7 @@ def test_trim_by_sphere_keeps_inside_and_measures_disc_area():
     # the boundary of the trimmed disc lies on H = 0
     m = trimesh.Trimesh(tp, tf, process=False)
     bnd = np.unique(m.edges_sorted[trimesh.grouping.group_rows(m.edges_sorted, require_count=1)])
-    assert np.abs(H(tp[bnd])).max() < 1e-9
+    assert np.abs(H(tp[bnd])).max() <= 1e-7
 
 
 def test_extract_layers_in_print_order_with_lpd():
@@ -87,3 +87,19 @@ def test_choose_isovalues_uniform_and_graded_fields():
     isos, rep = choose_isovalues(z, gn, cfg)
     assert rep["thickness_max"] <= 1.0 + 1e-9
     assert rep["fraction_outside_range"] == pytest.approx(0.25, abs=0.02)
+
+
+def test_edge_crossings_converge_inside_for_a_nonlinear_H():
+    from neuralslicer.layers import edge_crossings
+
+    rng = np.random.default_rng(3)
+    H = lambda x: np.sum(x**2, axis=1) ** 2 - 1.0  # not a distance: quartic along segments
+    p_in = rng.uniform(-0.5, 0.5, size=(2000, 3))
+    p_out = p_in + rng.normal(size=(2000, 3))
+    p_out *= (2.0 / np.linalg.norm(p_out, axis=1))[:, None]
+    c = edge_crossings(p_in, p_out, H(p_in), H(p_out), H, iterations=60, tol=1e-10)
+    assert np.all(H(c) <= 0)
+    assert np.abs(H(c)).max() <= 1e-10
+    # on the segment
+    d = np.cross(c - p_in, p_out - p_in)
+    assert np.abs(d).max() < 1e-9

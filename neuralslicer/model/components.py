@@ -139,9 +139,12 @@ class MeshComponent(Component):
 
     def winding_number(self, x: FloatArray) -> FloatArray:
         """Generalized winding number ``(n,)`` (fast, Barill et al. 2018) at ``x (n, 3)``."""
-        import igl
+        if getattr(self, "_winding_bvh", None) is None:  # built once, reused by every query
+            import igl
 
-        return igl.fast_winding_number(self.vertices, self.faces, _points(x))
+            self._winding_bvh = igl.FastWindingNumberBVH()
+            self._winding_bvh.init(self.vertices, self.faces)
+        return np.asarray(self._winding_bvh.winding_number(_points(x)))
 
     def value(self, x: FloatArray) -> FloatArray:
         """Signed distance ``(n,)``."""

@@ -13,7 +13,9 @@ class NetworkConfig(BaseModel):
 
     hidden_layers: int = Field(3, ge=1, description="number of hidden sine layers")
     hidden_features: int = Field(64, ge=4, description="neurons per hidden layer")
-    omega_0: float = Field(30.0, gt=0, description="SIREN frequency of the first layer (Sitzmann)")
+    omega_0: float = Field(
+        10.0, gt=0, description="SIREN frequency of the first layer (Sitzmann/paper: 30)"
+    )
     omega_hidden: float = Field(30.0, gt=0, description="SIREN frequency of hidden layers")
     max_scale: float = Field(
         5.0, gt=1, description="scale ratios are bounded to [1/max_scale, max_scale]"
@@ -23,7 +25,7 @@ class NetworkConfig(BaseModel):
 #: Network presets: ``default`` converges well on a CPU; ``paper`` is the published 10 x 512.
 NETWORK_PRESETS: dict[str, NetworkConfig] = {
     "default": NetworkConfig(),
-    "paper": NetworkConfig(hidden_layers=10, hidden_features=512),
+    "paper": NetworkConfig(hidden_layers=10, hidden_features=512, omega_0=30.0),
     "small": NetworkConfig(hidden_layers=2, hidden_features=32),
 }
 
@@ -62,11 +64,16 @@ class LossConfig(BaseModel):
     k_sr: float = Field(15.0, gt=0, description="logistic growth rate of L_SR")
     collision: bool = Field(True, description="enforce L_CA = 0 by a DC3-style correction")
     phi_deg: float = Field(120.0, gt=0, lt=180, description="printer-head cone apex angle phi")
-    correction_steps: int = Field(3, ge=0, description="max correction steps per iteration")
+    correction_steps: int = Field(1, ge=0, description="max correction steps per iteration")
     correction_lr: float = Field(
         1.0, gt=0, description="fraction of the first-order step to L_CA = 0 (L_CA/|grad|^2 grad)"
     )
-    correction_tol: float = Field(0.0, ge=0, description="L_CA below this counts as feasible")
+    correction_max_step: float = Field(
+        0.05, gt=0, description="cap of one correction step, relative to the weight norm"
+    )
+    correction_tol: float = Field(
+        1e-5, ge=0, description="L_CA (mean excess angle per pair, rad) counted as feasible"
+    )
 
 
 class OptimConfig(BaseModel):
@@ -82,6 +89,9 @@ class OptimConfig(BaseModel):
     convergence_window: int = Field(100, ge=2, description="steps compared by the stop test")
     convergence_rtol: float = Field(
         1e-3, ge=0, description="stop when the best loss improved less than this over the window"
+    )
+    convergence_atol: float = Field(
+        1e-5, ge=0, description="... or less than this in absolute terms (losses are unit-free)"
     )
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")
     seed: int = Field(0, description="seed of torch, numpy and python RNGs")

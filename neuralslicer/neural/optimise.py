@@ -41,7 +41,8 @@ class FieldResult:
 
     deformed_vertices : (n, 3) cage vertices after deformation; G : (n,) field at cage vertices
     (= deformed z); lpd : (m, 3) unit LPD per cage tet; quaternions : (m, 4); scales : (m, 3);
-    history : per-step arrays ('total', each term, 'lr', 'ca_after_correction'); final : the loss
+    history : per-step arrays ('total', each term after the DC3 correction, 'corrections' made
+    before the step, 'lr'); final : the loss
     terms at the end; pretrain_history : MSE per pre-training step.
     """
 
@@ -213,32 +214,46 @@ class FieldProblem:
         return out
 
 
-def dc3_correction(
-    problem: FieldProblem, fields: DeformationFields, ca: torch.Tensor | None = None
-) -> float:
-    """DC3-style correction: gradient steps on the weights towards L_CA = 0; returns final L_CA.
+def correction_step(fields: DeformationFields, ca: torch.Tensor, config) -> bool:
+    """One DC3-style correction of the weights towards L_CA = 0 (in place); False if no step.
 
-    ``ca`` may be the current L_CA with its graph (saves one forward pass).
+    The step is the first-order (Polyak / Gauss-Newton) step for the scalar constraint,
+    ``theta -= lr * L_CA / |grad L_CA|^2 * grad L_CA``, its length capped at
+    ``max_step * |theta|`` so that a nearly flat constraint cannot throw the weights away.
+    """
+    params = [p for p in fields.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(ca, params, allow_unused=True)
+    norm2 = sum(float((g * g).sum()) for g in grads if g is not None)
+    if norm2 <= 0:
+        return False
+    theta = math.sqrt(sum(float((p.detach() * p.detach()).sum()) for p in params))
+    eta = config.correction_lr * float(ca.detach()) / norm2
+    eta = min(eta, config.correction_max_step * theta / math.sqrt(norm2))
+    with torch.no_grad():
+        for p, g in zip(params, grads):
+            if g is not None:
+                p.sub_(eta * g)
+    return True
+
+
+def corrected_evaluation(
+    problem: FieldProblem, fields: DeformationFields
+) -> tuple[torch.Tensor, dict[str, torch.Tensor], int]:
+    """Evaluate the losses after up to ``correction_steps`` DC3 corrections (while L_CA > tol).
+
+    Returns (total, terms, corrections made); the terms are those of the corrected weights, so
+    a feasible iterate costs one evaluation and each correction one backward + one evaluation.
     """
     cl = problem.config.loss
-    params = [p for p in fields.parameters() if p.requires_grad]
-    if ca is None:
-        ca = problem.collision_value(fields)
-    for _ in range(cl.correction_steps):
-        if float(ca) <= cl.correction_tol:
+    total, terms = problem.evaluate(fields)
+    done = 0
+    while (cl.collision and done < cl.correction_steps
+           and float(terms["ca"].detach()) > cl.correction_tol):
+        if not correction_step(fields, terms["ca"], cl):
             break
-        grads = [g for g in torch.autograd.grad(ca, params, allow_unused=True)]
-        norm2 = sum(float((g * g).sum()) for g in grads if g is not None)
-        if norm2 <= 0:
-            break
-        # Polyak / Gauss-Newton step for the scalar constraint: the first-order step to L_CA = 0
-        eta = cl.correction_lr * float(ca) / norm2
-        with torch.no_grad():
-            for p, g in zip(params, grads):
-                if g is not None:
-                    p.sub_(eta * g)
-        ca = problem.collision_value(fields)
-    return float(ca)
+        done += 1
+        total, terms = problem.evaluate(fields)
+    return total, terms, done
 
 
 def initial_target(problem: FieldProblem, user_values: np.ndarray | None,
@@ -385,7 +400,7 @@ def _optimise_field(
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimizer, mode="min", factor=oc.plateau_factor, patience=oc.plateau_patience, min_lr=oc.min_lr
     )
-    history: dict[str, list[float]] = {k: [] for k in ("total", *TERMS, "ca_after_correction", "lr")}
+    history: dict[str, list[float]] = {k: [] for k in ("total", *TERMS, "corrections", "lr")}
     pretrain_hist = np.zeros(0)
     step = 0
     converged = False
@@ -426,12 +441,7 @@ def _optimise_field(
     for v in history["total"]:
         best.append(min(best[-1], v) if best else v)
     while step < oc.max_steps and not converged:
-        total, terms = problem.evaluate(fields)
-        ca_after = float(terms["ca"].detach())
-        cl = config.loss
-        if cl.collision and cl.correction_steps > 0 and ca_after > cl.correction_tol:
-            ca_after = dc3_correction(problem, fields, terms["ca"])
-            total, terms = problem.evaluate(fields)
+        total, terms, n_corr = corrected_evaluation(problem, fields)
         optimizer.zero_grad()
         total.backward()
         optimizer.step()
@@ -441,13 +451,13 @@ def _optimise_field(
         history["total"].append(tv)
         for k in TERMS:
             history[k].append(float(terms[k].detach()))
-        history["ca_after_correction"].append(ca_after)
+        history["corrections"].append(float(n_corr))
         history["lr"].append(optimizer.param_groups[0]["lr"])
         best.append(min(best[-1], tv) if best else tv)
         w = oc.convergence_window
         if len(best) > w:
             old = best[-1 - w]
-            converged = (old - best[-1]) <= oc.convergence_rtol * abs(old)
+            converged = (old - best[-1]) <= oc.convergence_rtol * abs(old) + oc.convergence_atol
         if optimizer.param_groups[0]["lr"] <= oc.min_lr * (1 + 1e-9) and len(best) > w:
             converged = converged or (best[-1 - w] - best[-1]) <= 1e-9 * abs(best[-1 - w])
         if progress is not None:
