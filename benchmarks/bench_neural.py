@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--device", default="cpu")
     p.add_argument("--inits", default="height,heat,user")
-    p.add_argument("--ring-cache", default="benchmarks/results/ring_inputs.npz")
+    p.add_argument("--ring-cache", default="", help="npz to cache the Ring inputs in (optional)")
     a = p.parse_args(argv)
     sizes = a.sizes.split(",")
     if a.part in ("solve", "all"):

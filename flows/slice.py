@@ -43,8 +43,9 @@ class RunLog:
 
 def model_name(spec: ModelSpec) -> str:
     """A store-safe model name from the spec's source file."""
-    source = getattr(spec, "source", None) or spec.components[0].file
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(source).stem) or "model"
+    source = Path(getattr(spec, "source", None) or spec.components[0].file)
+    stem = source.parent.name if source.stem in ("model", "spec") and source.parent.name else source.stem
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", stem) or "model"
 
 
 def default_objectives(spec: ModelSpec) -> list[str]:

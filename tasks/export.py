@@ -126,7 +126,8 @@ def export_outputs(
     _, lpd, _ = f.sample(B.points)
     planar = np.tile([0.0, 0.0, 1.0], (len(B.points), 1))
     attrs = {k: st.attrs(r.path) for k, r in
-             {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers}.items()}
+             {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers,
+              "toolpaths": printing, "stress_samples": stress, "verify": verify}.items() if r is not None}
     field_attrs = attrs["field"]
     metrics: dict[str, Any] = {
         "model": model.model,
