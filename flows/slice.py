@@ -7,10 +7,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from prefect import flow
+from prefect import flow, get_run_logger
 from prefect.states import State
 
 from neuralslicer.config import SliceConfig
+from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.model.spec import ModelSpec, spec_digest
 from neuralslicer.motion.profile import load_profile
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
@@ -48,6 +49,12 @@ def model_name(spec: ModelSpec) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem) or "model"
 
 
+def smoother(config: NeuralConfig, factor: float) -> NeuralConfig:
+    """The neural config with the harmonic (smoothness) weights multiplied."""
+    loss = config.loss.model_copy(update={"w_hs": config.loss.w_hs * factor, "w_hq": config.loss.w_hq * factor})
+    return config.model_copy(update={"loss": loss})
+
+
 def default_objectives(spec: ModelSpec) -> list[str]:
     """sf, po, plus sr when the spec has an FEA load case."""
     return ["sf", "po"] + (["sr"] if getattr(spec, "fea", None) is not None else [])
@@ -69,15 +76,25 @@ def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -
         fea = log.run(fea_task, store=store, model=model)
     if "sr" in objectives:
         stress = log.run(stress_samples_task, store=store, model=model, fea=fea)
-    field_ref = log.run(
-        optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
-        objectives=objectives, config=config.neural,
-    )
-    layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
-    printing = log.run(
-        plan_print_task, store=store, model=model, layers=layers, config=config.toolpath,
-        machine=load_profile(config.machine),
-    )
+    machine = load_profile(config.machine)
+    neural = config.neural
+    for attempt in range(config.collision_retries + 1):
+        field_ref = log.run(
+            optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
+            objectives=objectives, config=neural,
+        )
+        layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
+        printing = log.run(
+            plan_print_task, store=store, model=model, layers=layers, config=config.toolpath, machine=machine
+        )
+        collisions = ArtifactStore(store).attrs(printing.path)["metrics"].get("n_collisions", 0)
+        if collisions == 0 or not objectives or attempt == config.collision_retries:
+            break
+        # the paper's fallback: smoother fields (larger harmonic weights) and the local collision term, then again
+        neural = smoother(neural, config.collision_smoothness_factor)
+        objectives = sorted(set(objectives) | {"ca"})
+        get_run_logger().warning("%d nozzle collisions: re-optimising with harmonic weights x%g", collisions,
+                                 config.collision_smoothness_factor)
     if config.verify:
         verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
     log.run(

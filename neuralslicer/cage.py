@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytetwild
@@ -72,6 +73,8 @@ def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, of
 def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, np.ndarray]:
     """fTetWild on the offset surface at an absolute ideal edge length, with an envelope of ENVELOPE * edge."""
     diag = float(np.linalg.norm(surface.bounds[1] - surface.bounds[0]))
+    tracked = Path("__tracked_surface.stl")  # fTetWild leaves this debug file in the working directory
+    existed = tracked.exists()
     v, t = pytetwild.tetrahedralize(
         np.asarray(surface.vertices, dtype=np.float64),
         np.asarray(surface.faces, dtype=np.int32),
@@ -79,6 +82,8 @@ def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, 
         epsilon=ENVELOPE * edge / diag,
         quiet=True,
     )
+    if not existed:
+        tracked.unlink(missing_ok=True)
     t = t.astype(np.int64)
     t = orient_tets(v, t)
     keep = np.abs(tet_volumes(v, t)) > 0

@@ -73,6 +73,8 @@ def build_config(args: argparse.Namespace) -> Any:
         data["verify"] = True
     if args.robot:
         data["robot"] = True
+    if args.collision_retries is not None:
+        data["collision_retries"] = args.collision_retries
     if args.machine is not None:
         data["machine"] = args.machine
     if args.init is not None:
@@ -220,6 +222,8 @@ def add_slice_parser(sub: Any) -> None:
     p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
     p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
     p.add_argument("--robot", action="store_true", help="also write robot_waypoints.csv/.json")
+    p.add_argument("--collision-retries", type=int, default=None,
+                   help="re-optimise with smoother fields and the collision term while the nozzle collides (default 0)")
     p.add_argument("--verify", action="store_true", help="anisotropic FEA of planar vs computed layers (spec needs fea)")
     p.set_defaults(func=cmd_slice)
 

@@ -38,6 +38,8 @@ class SliceConfig(BaseModel):
     toolpath: ToolpathConfig = Field(default_factory=ToolpathConfig)
     machine: str = Field("table_bc_linuxcnc", description="machine profile: a shipped name or a YAML file")
     robot: bool = Field(False, description="also write robot_waypoints.csv/.json (position, tool quaternion, extrusion)")
+    collision_retries: int = Field(0, ge=0, le=5, description="re-optimise with smoother fields while the nozzle collides")
+    collision_smoothness_factor: float = Field(10.0, gt=1, description="harmonic weights multiplied per retry")
     verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
 
     @classmethod
