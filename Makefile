@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml constraints.txt
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/neuralslicer slice neuralslicer/examples/bracket/model.yaml --out $(DEMO_OUT)
+	$(BIN)/neuralslicer slice neuralslicer/examples/bracket/model.yaml --out $(DEMO_OUT) --max-steps 200 --verify
 	@echo "demo results in $(DEMO_OUT): report.md, metrics.json, layers/, field.vtu, model.ply, print.gcode"
 
 test: $(STAMP)
