@@ -26,6 +26,7 @@ import scipy.linalg as sla
 import torch
 
 from neuralslicer.neural import NeuralConfig, optimise_field
+from neuralslicer.neural.config import DeformationConfig
 from neuralslicer.neural.deformation import ArapDeformation
 from neuralslicer.neural.optimise import FieldProblem
 from neuralslicer.neural.synthetic import grid_tets
@@ -68,10 +69,17 @@ def _cage(size: str):
 def bench_solve(sizes: list[str], repeats: int = 20) -> list[dict]:
     """Per-solve time and memory: our sparse factor vs a dense Cholesky of the same K."""
     rows = []
-    for size in sizes:
+    backends = ["splu"]
+    try:
+        import cholespy  # noqa: F401
+
+        backends.append("cholespy")
+    except ImportError:
+        pass
+    for size, backend in [(s, b) for s in sizes for b in backends]:
         V, T = _cage(size)
         t = time.perf_counter()
-        arap = ArapDeformation(V, T)
+        arap = ArapDeformation(V, T, DeformationConfig(solver=backend))
         t_factor = time.perf_counter() - t
         rhs = np.random.default_rng(0).standard_normal((len(V), 3))
         arap._solve_xyz(rhs)
@@ -84,9 +92,9 @@ def bench_solve(sizes: list[str], repeats: int = 20) -> list[dict]:
         row = {"size": size, "tets": len(T), "vertices": len(V), "backend": arap.backend,
                "nnz_K": int(arap.K.nnz), "nnz_factor": nnz_factor,
                "sparse_factor_s": t_factor, "sparse_solve_s": t_solve,
-               "sparse_factor_MB": nnz_factor * 12 / 2**20}
+               "sparse_factor_MB": nnz_factor * 12 / 2**20 if nnz_factor > 0 else None}
         n = len(V)
-        if n <= 12_000:
+        if n <= 12_000 and backend == "splu":
             K = arap.K.toarray()
             t = time.perf_counter()
             c = sla.cho_factor(K, lower=True)
@@ -99,16 +107,20 @@ def bench_solve(sizes: list[str], repeats: int = 20) -> list[dict]:
             row["dense_matrix_MB"] = n * n * 8 / 2**20
             row["max_abs_diff"] = float(np.abs(xd - x).max())
             row["speedup_per_solve"] = row["dense_solve_s"] / t_solve
+            dense = {k: row[k] for k in ("dense_factor_s", "dense_solve_s", "dense_matrix_MB")}
             del K, c
+        elif "dense" in locals() and backend != "splu":
+            row.update(dense)
+            row["speedup_per_solve"] = row["dense_solve_s"] / t_solve
         rows.append(row)
-    print(f"\n{'size':>5} {'tets':>7} {'verts':>6} {'nnz(K)':>8} {'nnz(LU)':>9} {'fact s':>8} "
+    print(f"\n{'size':>5} {'backend':>8} {'tets':>7} {'verts':>6} {'nnz(K)':>8} {'nnz(LU)':>9} {'fact s':>8} "
           f"{'solve ms':>9} {'dense fact s':>12} {'dense ms':>9} {'speedup':>8} {'dense MB':>9} {'LU MB':>7}")
     for r in rows:
-        print(f"{r['size']:>5} {r['tets']:>7} {r['vertices']:>6} {r['nnz_K']:>8} {r['nnz_factor']:>9} "
+        print(f"{r['size']:>5} {r['backend']:>8} {r['tets']:>7} {r['vertices']:>6} {r['nnz_K']:>8} {r['nnz_factor']:>9} "
               f"{r['sparse_factor_s']:>8.3f} {1e3 * r['sparse_solve_s']:>9.3f} "
               f"{r.get('dense_factor_s', float('nan')):>12.3f} {1e3 * r.get('dense_solve_s', float('nan')):>9.2f} "
               f"{r.get('speedup_per_solve', float('nan')):>8.1f} {r.get('dense_matrix_MB', float('nan')):>9.1f} "
-              f"{r['sparse_factor_MB']:>7.2f}")
+              f"{r['sparse_factor_MB'] or float('nan'):>7.2f}")
     return rows
 
 

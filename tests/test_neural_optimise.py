@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+import json
 import math
 
 import numpy as np
@@ -93,6 +94,7 @@ def test_optimisation_reduces_sphere_overhang_and_logs_every_term(problem):
     assert np.allclose(res.G, res.deformed_vertices[:, 2])
     arrays, attrs = res.to_arrays()
     assert arrays["G"].shape == (len(problem[0]),) and attrs["steps"] == 60
+    assert json.loads(json.dumps(attrs))["satisfaction"] == attrs["satisfaction"]
 
 
 def test_zero_steps_is_the_planar_field(problem):
@@ -129,7 +131,9 @@ def test_non_identity_guess_is_pretrained(problem, kind):
         "init": {"kind": kind, "pretrain_steps": 80, "pretrain_lr": 3e-3},
     })
     user = V[:, 2] + 0.4 * (V[:, 0] - 5.0)  # a tilted height field
-    res = _run(problem, cfg, user_field=user)
+    phases = []
+    res = _run(problem, cfg, user_field=user, progress=lambda step, info: phases.append(info["phase"]))
+    assert phases == ["pretrain"] * 80
     # heat on a box is already close to the height: a smaller relative gain is expected
     assert res.pretrain_history[-1] < (0.3 if kind == 'user' else 0.7) * res.pretrain_history[0]
     if kind == "user":

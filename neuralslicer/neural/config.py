@@ -43,8 +43,9 @@ class DeformationConfig(BaseModel):
     platform_tolerance: float = Field(
         0.0, ge=0, description="mm above the platform still counted as 'on the platform'"
     )
-    solver: Literal["auto", "cholmod", "splu"] = Field(
-        "auto", description="sparse factorisation: CHOLMOD (scikit-sparse) when present, else SuperLU"
+    solver: Literal["auto", "cholmod", "cholespy", "splu"] = Field(
+        "auto",
+        description="sparse factorisation: 'auto' = CHOLMOD (scikit-sparse), else cholespy, else SuperLU",
     )
 
 

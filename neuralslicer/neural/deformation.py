@@ -46,8 +46,37 @@ def factorize(K: sp.spmatrix, solver: str = "auto") -> tuple[Callable[[np.ndarra
         except ImportError:
             if solver == "cholmod":
                 raise
+    if solver in ("auto", "cholespy"):
+        try:
+            return _cholespy_solver(K), "cholespy"
+        except ImportError:
+            if solver == "cholespy":
+                raise
     lu = spla.splu(K, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
     return lu.solve, "splu"
+
+
+def _cholespy_solver(K: sp.spmatrix) -> Callable[[np.ndarray], np.ndarray]:
+    """Sparse Cholesky (cholespy, CPU) of K; solve(b (n,) or (n,k) float64) -> x."""
+    from cholespy import CholeskySolverD, MatrixType  # type: ignore[import-not-found]
+
+    coo = sp.coo_matrix(K)
+    factor = CholeskySolverD(
+        coo.shape[0],
+        torch.as_tensor(coo.row, dtype=torch.int32),
+        torch.as_tensor(coo.col, dtype=torch.int32),
+        torch.as_tensor(coo.data, dtype=torch.float64),
+        MatrixType.COO,
+    )
+
+    def solve(b: np.ndarray) -> np.ndarray:
+        """x = K^-1 b on the CPU."""
+        rhs = torch.as_tensor(np.ascontiguousarray(b, dtype=np.float64))
+        x = torch.zeros_like(rhs)
+        factor.solve(rhs, x)
+        return x.numpy()
+
+    return solve
 
 
 class _FactorSolve(torch.autograd.Function):
@@ -99,6 +128,7 @@ class ArapDeformation:
         self.gamma = float(self.config.gamma)
         #: centred rest shape per element N V_e : (m, 4, 3)
         self.rest_local = self.vertices[self.tets] - self.vertices[self.tets].mean(axis=1, keepdims=True)
+        self._cache: dict[tuple, torch.Tensor] = {}
         self.K = arap_matrix(n, self.tets, self.gamma)
         self._solve_xyz, self.backend = factorize(self.K, self.config.solver)
         self.pinned = np.zeros(n, dtype=bool)
@@ -117,6 +147,7 @@ class ArapDeformation:
             self._z_shift = shift
 
             def solve_z_linear(b: np.ndarray) -> np.ndarray:
+                """Linear part of the pinned z solve: K_ff^-1 on the free rows, 0 on pinned."""
                 out = np.zeros_like(b)
                 out[free_idx] = solve_ff(b[free_idx])
                 return out
@@ -126,6 +157,16 @@ class ArapDeformation:
             self._z_shift = None
             self._solve_z_linear = self._solve_xyz
 
+    def _const(self, name: str, like: torch.Tensor, index: bool = False) -> torch.Tensor:
+        """Cached torch copy of a constant array on like's device (and dtype unless index)."""
+        dtype = torch.int64 if index else like.dtype
+        key = (name, dtype, like.device)
+        if key not in self._cache:
+            arr = {"rest": self.rest_local, "idx": self.tets.ravel(), "xyz": self.vertices,
+                   "z": self.vertices[:, 2]}[name]
+            self._cache[key] = torch.as_tensor(np.ascontiguousarray(arr), dtype=dtype, device=like.device)
+        return self._cache[key]
+
     @property
     def n_vertices(self) -> int:
         """Number of cage vertices."""
@@ -133,19 +174,17 @@ class ArapDeformation:
 
     def rhs(self, rotations: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
         """A^T b + gamma xi0 (n,3) for per-element rotations (m,3,3) and scale ratios (m,3)."""
-        P = torch.as_tensor(self.rest_local, dtype=scales.dtype, device=scales.device)
+        P = self._const("rest", scales)
         target = torch.einsum("eij,ej,ekj->eik", P, scales, rotations)  # (N V_e) S R^T : (m,4,3)
-        idx = torch.as_tensor(self.tets.ravel(), device=scales.device)
-        out = self.gamma * torch.as_tensor(self.vertices, dtype=scales.dtype, device=scales.device)
-        return out.index_add(0, idx, target.reshape(-1, 3))
+        out = self.gamma * self._const("xyz", scales)
+        return out.index_add(0, self._const("idx", scales, index=True), target.reshape(-1, 3))
 
     def rhs_z(self, rotations: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
         """z column of A^T b + gamma xi0 (n,): only the third row of R_e is needed."""
-        P = torch.as_tensor(self.rest_local, dtype=scales.dtype, device=scales.device)
+        P = self._const("rest", scales)
         target = torch.einsum("eij,ej,ej->ei", P, scales, rotations[:, 2, :])  # (m,4)
-        idx = torch.as_tensor(self.tets.ravel(), device=scales.device)
-        out = self.gamma * torch.as_tensor(self.vertices[:, 2], dtype=scales.dtype, device=scales.device)
-        return out.index_add(0, idx, target.reshape(-1))
+        out = self.gamma * self._const("z", scales)
+        return out.index_add(0, self._const("idx", scales, index=True), target.reshape(-1))
 
     def solve_xyz(self, rhs: torch.Tensor) -> torch.Tensor:
         """Differentiable K^-1 rhs for rhs (n,k), all columns in one factor solve (no pinning)."""

@@ -68,23 +68,3 @@ def field_gradient(G: torch.Tensor, tets: torch.Tensor, bary_grads: torch.Tensor
 def unit(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """Rows of v (n,3) scaled to unit length (zero rows stay ~0)."""
     return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
-
-
-def interpolate_at_points(
-    G: np.ndarray, geometry: CageGeometry, points: np.ndarray
-) -> np.ndarray:
-    """G(x) at points (p,) by barycentric interpolation in the containing cage tet (nearest outside)."""
-    tet, bary = TetLocator(geometry.vertices, geometry.tets).locate(np.asarray(points, dtype=np.float64))
-    out = tet < 0
-    if out.any():
-        _, tet[out] = cKDTree(geometry.centroids).query(points[out])
-        e = geometry.tets[tet[out]]
-        rel = points[out] - geometry.vertices[e[:, 0]]
-        lam = np.einsum("kij,kj->ki", _inverse_edges(geometry)[tet[out]], rel)
-        bary[out] = np.concatenate([1 - lam.sum(1, keepdims=True), lam], axis=1)
-    return np.einsum("pi,pi->p", np.asarray(G)[geometry.tets[tet]], bary)
-
-
-def _inverse_edges(geometry: CageGeometry) -> np.ndarray:
-    """Inverse edge matrices (m,3,3) of the cage tets (rows: gradients of a1..a3)."""
-    return geometry.bary_grads[:, 1:, :]

@@ -107,6 +107,7 @@ class FieldProblem:
         dev, dt = self.device, self.dtype
 
         def T(a: np.ndarray, dtype: torch.dtype = dt) -> torch.Tensor:
+            """Array -> tensor on the problem's device."""
             return torch.as_tensor(np.asarray(a), dtype=dtype, device=dev)
 
         self.tets_t = T(g.tets, torch.int64)
@@ -185,12 +186,6 @@ class FieldProblem:
         total = (cl.w_sf * terms["sf"] + cl.w_sr * terms["sr"] + cl.w_po * terms["po"]
                  + cl.w_hs * terms["hs"] + cl.w_hq * terms["hq"])
         return total, terms
-
-    def collision_value(self, fields: DeformationFields) -> torch.Tensor:
-        """L_CA alone for the current weights."""
-        G, _, _ = self.height(fields)
-        grad = field_gradient(G, self.tets_t, self.bary_grads_t)
-        return L.collision_loss(grad, self.pairs_t, self.pair_normals_t, math.radians(self.config.loss.phi_deg))
 
     def planar_lpd_satisfaction(self) -> dict[str, float]:
         """SF/SR satisfaction of planar layers (d = +z)."""
@@ -276,8 +271,16 @@ def initial_target(problem: FieldProblem, user_values: np.ndarray | None,
     return height_matched(field_, V)
 
 
-def pretrain(problem: FieldProblem, fields: DeformationFields, target: np.ndarray) -> np.ndarray:
-    """Fit G to target (n,) by Adam on the MSE (normalised by the z range^2); returns MSE history."""
+def pretrain(
+    problem: FieldProblem,
+    fields: DeformationFields,
+    target: np.ndarray,
+    progress: ProgressFn | None = None,
+) -> np.ndarray:
+    """Fit G to target (n,) by Adam on the MSE (normalised by the z range^2); returns MSE history.
+
+    ``progress(0, {"phase": "pretrain", "pretrain_step", "pretrain_steps", "mse"})`` per step.
+    """
     init = problem.config.init
     tgt = torch.as_tensor(target, dtype=problem.dtype, device=problem.device)
     scale = float(np.ptp(problem.geometry.vertices[:, 2])) ** 2
@@ -290,6 +293,9 @@ def pretrain(problem: FieldProblem, fields: DeformationFields, target: np.ndarra
         mse.backward()
         opt.step()
         hist.append(float(mse.detach()))
+        if progress is not None:
+            progress(0, {"phase": "pretrain", "pretrain_step": len(hist),
+                         "pretrain_steps": init.pretrain_steps, "mse": hist[-1]})
     return np.asarray(hist)
 
 
@@ -343,7 +349,9 @@ def optimise_field(
     config : NeuralConfig (defaults documented there); platform_z : platform height (pinning,
         heat-method source); user_field / user_field_points : the 'user' initial guess, values at
         cage vertices (n,) or at the given points.
-    progress(step, info) : called after every step with the loss terms, lr and elapsed time.
+    progress(step, info) : called after every step with the loss terms, lr, corrections and
+        elapsed time (info["phase"] == "optimise"); during pre-training with step 0 and
+        info["phase"] == "pretrain".
     save_checkpoint(bytes, step) : called every ``optim.checkpoint_every`` steps and at the end.
     load_checkpoint() -> bytes | None : a previous checkpoint to resume from.
     """
@@ -417,7 +425,7 @@ def _optimise_field(
     else:
         target = initial_target(problem, user_field, user_field_points)
         if target is not None:
-            pretrain_hist = pretrain(problem, fields, target)
+            pretrain_hist = pretrain(problem, fields, target, progress)
             optimizer = torch.optim.Adam(fields.parameters(), lr=oc.lr)
             scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
                 optimizer, mode="min", factor=oc.plateau_factor, patience=oc.plateau_patience,
@@ -425,6 +433,7 @@ def _optimise_field(
             )
 
     def checkpoint() -> None:
+        """Serialise the complete state and hand it to save_checkpoint."""
         if save_checkpoint is None:
             return
         buf = io.BytesIO()
@@ -463,6 +472,7 @@ def _optimise_field(
         if progress is not None:
             info = {k: history[k][-1] for k in history}
             info["elapsed_s"] = time.perf_counter() - t0
+            info["phase"] = "optimise"
             progress(step, info)
         if step % oc.checkpoint_every == 0 and step < oc.max_steps and not converged:
             checkpoint()
