@@ -1,6 +1,6 @@
 """Artifact store: zarr groups written atomically, mesh files, checkpoints and cache keys."""
 from storage.files import atomic_path, write_text_atomic
-from storage.keys import canonical, digest, file_digest
+from storage.keys import canonical, digest
 from storage.store import ArtifactRef, ArtifactStore, write_json_atomic
 
 __all__ = [
@@ -9,7 +9,6 @@ __all__ = [
     "atomic_path",
     "canonical",
     "digest",
-    "file_digest",
     "write_json_atomic",
     "write_text_atomic",
 ]
