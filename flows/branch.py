@@ -18,6 +18,7 @@ from neuralslicer.model.spec import ModelSpec, spec_digest, spec_for_file
 from pydantic import BaseModel, ConfigDict, Field
 
 from storage import ArtifactRef, ArtifactStore, digest, write_json_atomic
+from tasks.steps import store_user_field
 
 
 class Branch(BaseModel):
@@ -46,26 +47,6 @@ def load_branch_spec(model: str, up: str | None) -> ModelSpec:
         spec = spec.model_copy(update={"up": up})
         spec.source = source
     return spec
-
-
-def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
-    """Put a user field file (.npz: points (p,3) in the build frame, values (p,)) in the store, keyed by content."""
-    try:
-        with np.load(path) as data:
-            points = np.asarray(data["points"], dtype=np.float64)
-            values = np.asarray(data["values"], dtype=np.float64).ravel()
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(path, f"a user field is an .npz with 'points' (p,3) and 'values' (p,): {exc}") from None
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) != len(values) or not np.isfinite(values).all():
-        raise InputError(path, f"points {points.shape} and values {values.shape} do not match (p,3) and (p,)")
-    key = digest("user_field", hashlib.sha256(points.tobytes() + values.tobytes()).hexdigest())
-    ref = ArtifactStore(store).ref(f"{model}/user_field/{key}", key)
-    st = ArtifactStore(store)
-    if not st.exists(ref.path):
-        with st.lock(ref.path):
-            if not st.exists(ref.path):
-                st.write(ref.path, {"points": points, "values": values}, {"source": str(path)})
-    return ref
 
 
 def make_user_field(bounds: np.ndarray, path: str | Path, n: int = 9, tilt: float = 0.5) -> Path:
@@ -168,7 +149,8 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
         "field": {"path": field_ref.path, "steps": steps, "converged": field_attrs.get("converged"),
                   "optimise_wall_s": field_attrs.get("wall_time_s"),
                   "s_per_step": (field_attrs["wall_time_s"] / steps) if steps and field_attrs.get("wall_time_s") else None,
-                  "resumed_from_checkpoint": checkpoints},
+                  "resumed_from_checkpoint": checkpoints,
+                  "resumed_from_step": field_attrs.get("resumed_from_step")},
         "cage": {"path": cage.path, "n_elements": cage_attrs.get("n_elements"), "genus": cage_attrs.get("genus"),
                  "n_vertices": cage_attrs.get("n_vertices"), "wall_s": cage_attrs.get("wall_s")},
         "metrics": _metrics(branch.out_dir),

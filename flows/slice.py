@@ -12,6 +12,7 @@ from prefect.states import State
 
 from neuralslicer.config import SliceConfig
 from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.provenance import add_to_metrics, provenance, record_provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
 from neuralslicer.motion.profile import load_profile
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
@@ -26,6 +27,7 @@ from tasks.steps import (
     plan_print_task,
     sample_surface,
     solid_surface,
+    store_user_field,
 )
 
 
@@ -61,8 +63,13 @@ def default_objectives(spec: ModelSpec) -> list[str]:
 
 
 @flow(name="neuralslicer-slice")
-def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -> dict[str, Any]:
-    """Slice one model: every step a cached task whose artifacts live in the store; outputs in out_dir."""
+def slice_flow(
+    spec: ModelSpec, out_dir: str, config: SliceConfig, store: str, user_field: str | None = None
+) -> dict[str, Any]:
+    """Slice one model: every step a cached task whose artifacts live in the store; outputs in out_dir.
+
+    `user_field`: an .npz (points (p,3) in the build frame, values (p,)) for the `user` initial guess.
+    """
     start = time.perf_counter()
     log = RunLog()
     objectives = config.objectives if config.objectives is not None else default_objectives(spec)
@@ -76,12 +83,13 @@ def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -
         fea = log.run(fea_task, store=store, model=model)
     if "sr" in objectives:
         stress = log.run(stress_samples_task, store=store, model=model, fea=fea)
+    user = store_user_field(store, name, user_field) if user_field else None
     machine = load_profile(config.machine)
     neural = config.neural
     for attempt in range(config.collision_retries + 1):
         field_ref = log.run(
             optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
-            objectives=objectives, config=neural,
+            objectives=objectives, config=neural, user_field=user,
         )
         layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
         printing = log.run(
@@ -103,7 +111,11 @@ def slice_flow(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str) -
         alpha_deg=config.alpha_deg,
         beta_deg=config.neural.loss.beta_deg,
     )
+    record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None, extra={"store": store})
+    provenance_digest = record_provenance(out_dir, store, name, record)
+    add_to_metrics(out_dir, record)
     summary = {
+        "provenance_digest": provenance_digest,
         "tasks": [{"task": t, "state": s} for t, s in log.states],
         "all_cached": all(s == "Cached" for _, s in log.states),
         "wall_s": time.perf_counter() - start,

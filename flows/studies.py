@@ -38,13 +38,13 @@ def task_runner(dask: str | None, n_branches: int, dask_workers: int = 2, max_wo
     """The task runner of a study: threads on this machine, a Dask LocalCluster ('local') or an existing scheduler."""
     if not dask:
         return ThreadPoolTaskRunner(max_workers=max_workers or max(n_branches, 1))
-    from prefect_dask import DaskTaskRunner
+    from flows.dask_support import StudyDaskTaskRunner
 
     if dask == "local":
-        return DaskTaskRunner(cluster_class="distributed.LocalCluster",
+        return StudyDaskTaskRunner(cluster_class="distributed.LocalCluster",
                               cluster_kwargs={"n_workers": dask_workers, "threads_per_worker": 1, "processes": True,
                                               "host": "127.0.0.1", "dashboard_address": None})
-    return DaskTaskRunner(address=dask)
+    return StudyDaskTaskRunner(address=dask)
 
 
 def branch_name(text: str) -> str:

@@ -131,7 +131,11 @@ def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Bra
     rows = table_rows(study)
     write_json_atomic(out_dir / "study.json", study)
     lines = [f"# {study['title']}", "", f"{len(study['branches'])} branches, wall time {study['wall_s']:.1f} s.", "",
-             markdown_table(rows), ""]
+             markdown_table(rows), "",
+             "`s/step`: the optimisation's wall time (set-up and pre-training included) over its steps; "
+             "`SF supported`: area fraction of the surface samples B within the self-supporting angle; "
+             "`overhang`: area fraction beyond it (`overhang planar`: the same for planar layers); "
+             "`worker`: the Dask worker (or process) the branch ran in.", ""]
     for b in study["branches"]:
         if b.get("status") == "completed":
             lines.append(f"- `{b['name']}`: [{b['name']}/report.md]({b['name']}/report.md)")

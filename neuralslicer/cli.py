@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from neuralslicer.cli_studies import add_compare_parser, add_study_parser
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 
@@ -118,7 +119,8 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
 
     store = ensure_store(store)
     with cache_settings(store):
-        summary = slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store)
+        user_field = args.init if args.init not in (None, "height", "heat") else None
+        summary = slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store, user_field=user_field)
     print_summary(summary)
     return 0
 
@@ -235,6 +237,8 @@ def make_parser() -> ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     add_slice_parser(sub)
     add_fea_parser(sub)
+    add_study_parser(sub)
+    add_compare_parser(sub)
     return parser
 
 

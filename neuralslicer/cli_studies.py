@@ -44,6 +44,8 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.dask is not None and args.dask != "local" and "://" not in args.dask and ":" not in args.dask:
         raise InputError("--dask", f"{args.dask!r}: give a scheduler address (tcp://host:8786) or 'local'")
     counts = parse_counts(args.cage_elements) if args.study == "cages" else None
+    if args.study == "initial-guess" and config.objectives is not None and not config.objectives:
+        raise InputError("--objectives", "the initial-guess study optimises: give objectives (e.g. sf,po), not none")
     if args.study == "initial-guess" and args.user_field is not None and not Path(args.user_field).is_file():
         raise InputError(args.user_field, "no such file (--user-field takes an .npz with points and values)")
 
@@ -70,6 +72,10 @@ def cmd_study(args: argparse.Namespace) -> int:
     return run_in_out_dir(out_dir, job)
 
 
+# columns of study.md left out of the terminal table (kept narrow)
+TERMINAL_SKIP = ("L_sf", "L_po", "L_sr", "L_hs", "L_hq", "L_ca", "overhang planar", "steps", "status")
+
+
 def print_study(study: dict[str, Any]) -> None:
     """The study table on the terminal."""
     from rich.console import Console
@@ -80,7 +86,7 @@ def print_study(study: dict[str, Any]) -> None:
     rows = table_rows(study)
     cols: list[str] = []
     for r in rows:
-        cols += [c for c in r if c not in cols]
+        cols += [c for c in r if c not in cols and c not in TERMINAL_SKIP]
     table = Table(title=study["title"])
     for c in cols:
         table.add_column(c)

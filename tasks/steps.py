@@ -1,6 +1,7 @@
 """One Prefect task per pipeline step: read inputs from the store, call the core, return what to store."""
 from __future__ import annotations
 
+import hashlib
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,8 @@ from neuralslicer.tetmesh import tet_volumes
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.topology import genus, tet_boundary_genus
-from storage import ArtifactRef, ArtifactStore
+from neuralslicer.errors import InputError
+from storage import ArtifactRef, ArtifactStore, digest
 from tasks.common import pipeline_task
 from tasks.progress import Progress
 
@@ -175,3 +177,23 @@ def read_print(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
         MachineProgram.from_arrays(part["program"], attrs["program"]),
         attrs["metrics"],
     )
+
+
+def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
+    """Put a user field file (.npz: points (p,3) in the build frame, values (p,)) in the store, keyed by content."""
+    try:
+        with np.load(path) as data:
+            points = np.asarray(data["points"], dtype=np.float64)
+            values = np.asarray(data["values"], dtype=np.float64).ravel()
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(path, f"a user field is an .npz with 'points' (p,3) and 'values' (p,): {exc}") from None
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) != len(values) or not np.isfinite(values).all():
+        raise InputError(path, f"points {points.shape} and values {values.shape} do not match (p,3) and (p,)")
+    key = digest("user_field", hashlib.sha256(points.tobytes() + values.tobytes()).hexdigest())
+    ref = ArtifactStore(store).ref(f"{model}/user_field/{key}", key)
+    st = ArtifactStore(store)
+    if not st.exists(ref.path):
+        with st.lock(ref.path):
+            if not st.exists(ref.path):
+                st.write(ref.path, {"points": points, "values": values}, {"source": str(path)})
+    return ref

@@ -1,6 +1,7 @@
 """The slicing flow end to end: output contract, cache hits, selective reruns, resume after a kill."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -92,7 +93,8 @@ def test_kill_and_resume(tmp_path, small_part):
     out = tmp_path / "run"
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
     cmd = [sys.executable, "-m", "neuralslicer.cli", *slice_cmd(small_part, out, cfg, "--objectives", "sf,po")]
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)  # its own process group: the kill takes its Prefect server too
     ckpt_root = out / "store.zarr" / "lpart" / "checkpoints"
     deadline = time.monotonic() + 240
     try:
@@ -102,8 +104,9 @@ def test_kill_and_resume(tmp_path, small_part):
                 break
             time.sleep(0.2)
         assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-2000:]}"
-        proc.send_signal(signal.SIGKILL)
     finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
     assert not (out / "metrics.json").exists()
     rerun = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)

@@ -39,6 +39,12 @@ def test_initial_guess_study_runs_branches_in_dask_worker_processes(
     # every branch ran inside a worker process of the cluster, and the branches used both workers
     assert pids == worker_pids
     assert all(b["worker"].get("dask_address") for b in recorded["branches"])
+    # the branches shared one cage, computed once under the store's lock while they ran concurrently
+    assert len({b["cage"]["path"] for b in recorded["branches"]}) == 1
+    states = [{t["task"]: t["state"] for t in b["tasks"]} for b in recorded["branches"]]
+    assert all(s["field"] == "Completed" for s in states)
+    staging = Path(shared_store(tmp_path_factory), "_staging")
+    assert sorted(p.name for p in staging.iterdir() if not p.name.startswith(("locks", "zarr.json"))) == []
     # the three initial guesses really differ: the pre-trained fields start apart, so the loss curves differ
     store = ArtifactStore(shared_store(tmp_path_factory))
     totals = {b["name"]: store.read(b["field"]["path"], ["history/total"])[0]["history/total"]

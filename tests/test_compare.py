@@ -1,0 +1,95 @@
+"""`neuralslicer compare` and the provenance record."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from neuralslicer.compare import compare_runs
+from neuralslicer.config import SliceConfig
+from neuralslicer.errors import InputError
+from neuralslicer.model.spec import spec_for_file
+from neuralslicer.provenance import metrics_entries, provenance, record_provenance
+from storage import ArtifactStore
+from studies_common import torus_file
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run_folder(path: Path, metrics: dict, prov: dict | None = None) -> Path:
+    """An output folder with metrics.json (and provenance.json)."""
+    path.mkdir(parents=True)
+    (path / "metrics.json").write_text(json.dumps(metrics))
+    if prov is not None:
+        (path / "provenance.json").write_text(json.dumps(prov))
+    return path
+
+
+def test_provenance_records_inputs_seeds_versions_and_device(tmp_path: Path) -> None:
+    """The record hashes the input file's bytes, lists every seed, the versions and the torch device."""
+    import hashlib
+
+    model = torus_file(tmp_path)
+    spec = spec_for_file(model)
+    config = SliceConfig.model_validate({"neural": {"optim": {"seed": 7}}, "samples": {"seed": 3}})
+    record = provenance(spec, config)
+    assert record["inputs"]["files"][str(model.resolve())] == hashlib.sha256(model.read_bytes()).hexdigest()
+    assert record["seeds"] == {"samples.seed": 3, "cage.seed": 0, "neural.optim.seed": 7}
+    assert record["versions"]["torch"] and record["versions"]["prefect"] == "3.8.8"
+    assert record["device"]["torch_device"] in ("cpu", "cuda")
+    assert record["config"]["neural"]["optim"]["seed"] == 7
+    entries = metrics_entries(record)
+    assert entries["provenance.seeds.neural.optim.seed"] == 7
+    assert all(not isinstance(v, (dict, list)) for v in entries.values())
+    # the store copy is keyed by the record's content (time and command excluded): the same run, the same key
+    store = tmp_path / "store.zarr"
+    key1 = record_provenance(tmp_path / "a", str(store), "torus", record)
+    key2 = record_provenance(tmp_path / "b", str(store), "torus", {**provenance(spec, config), "command": ["x"]})
+    assert key1 == key2
+    assert ArtifactStore(store).attrs(f"torus/provenance/{key1}")["provenance"]["seeds"]["samples.seed"] == 3
+    other = provenance(spec, config.model_copy(update={"alpha_deg": 40.0}))
+    assert record_provenance(tmp_path / "c", str(store), "torus", other) != key1
+
+
+def test_compare_lists_only_what_differs(tmp_path: Path) -> None:
+    """Different parameters and metrics are listed with both values and the delta; equal entries are not."""
+    a = _run_folder(tmp_path / "a", {"n_layers": 10, "loss.total": 0.5, "model": "ring", "provenance.seeds.x": 1},
+                    {"config": {"cage": {"n_elements": 4000}, "alpha_deg": 45.0}, "recorded_at": "t1"})
+    b = _run_folder(tmp_path / "b", {"n_layers": 12, "loss.total": 0.5, "model": "ring", "provenance.seeds.x": 2},
+                    {"config": {"cage": {"n_elements": 8000}, "alpha_deg": 45.0}, "recorded_at": "t2"})
+    diffs = {(d.section, d.key): d for d in compare_runs(a, b)}
+    assert set(diffs) == {("metrics", "n_layers"), ("parameters", "config.cage.n_elements"),
+                          ("parameters", "provenance.seeds.x")}
+    assert diffs[("metrics", "n_layers")].delta == 2.0
+    assert (diffs[("parameters", "config.cage.n_elements")].a, diffs[("parameters", "config.cage.n_elements")].b) == (4000, 8000)
+    everything = compare_runs(a, b, include_all=True)
+    assert {d.key for d in everything if d.equal} == {"loss.total", "model", "config.alpha_deg"}
+    # a relative tolerance makes near-equal numbers equal
+    c = _run_folder(tmp_path / "c", {"n_layers": 10, "loss.total": 0.5000001, "model": "ring", "provenance.seeds.x": 1})
+    assert [d.key for d in compare_runs(a, c, rtol=1e-5) if d.section == "metrics"] == []
+    assert [d.key for d in compare_runs(a, c) if d.section == "metrics"] == ["loss.total"]
+
+
+def test_compare_rejects_a_folder_without_metrics(tmp_path: Path) -> None:
+    """A folder that is not a run output is an input error naming it."""
+    a = _run_folder(tmp_path / "a", {"n_layers": 1})
+    with pytest.raises(InputError, match="metrics.json"):
+        compare_runs(a, tmp_path)
+
+
+def test_compare_command_prints_a_table_and_exits_0(tmp_path: Path) -> None:
+    """The command prints the differing keys with both values; exit 0; bad input exits 2."""
+    a = _run_folder(tmp_path / "a", {"n_layers": 10, "sf.overhang_area_fraction": 0.25})
+    b = _run_folder(tmp_path / "b", {"n_layers": 10, "sf.overhang_area_fraction": 0.125})
+    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
+    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli_studies", "compare", str(a), str(b)], cwd=REPO,
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "sf.overhang_area_fraction" in done.stdout and "0.25" in done.stdout and "0.125" in done.stdout
+    assert "n_layers" not in done.stdout and "1 difference(s)" in done.stdout
+    bad = subprocess.run([sys.executable, "-m", "neuralslicer.cli_studies", "compare", str(a), str(tmp_path / "x")],
+                         cwd=REPO, capture_output=True, text=True, env=env, timeout=120)
+    assert bad.returncode == 2 and "neuralslicer: error:" in bad.stderr
