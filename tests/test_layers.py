@@ -103,3 +103,22 @@ def test_edge_crossings_converge_inside_for_a_nonlinear_H():
     # on the segment
     d = np.cross(c - p_in, p_out - p_in)
     assert np.abs(d).max() < 1e-9
+
+
+def test_layers_of_a_curved_field_are_level_sets_and_do_not_intersect():
+    from neuralslicer.scalar_field import ScalarField
+
+    V, T = cube_grid(10)
+    # a curved field: G = z + 0.3 sin(2 pi x), its level sets are wavy sheets
+    G = V[:, 2] + 0.3 * np.sin(2 * np.pi * V[:, 0])
+    field = ScalarField(V, T, G)
+    H = sphere_H(0.45, np.array([0.5, 0.5, 0.5]))
+    isos = np.arange(0.1, 1.2, 0.08)
+    layers = extract_layers(V, T, G, field.lpd(), H, isos, LayerConfig(layer_height=0.08, t_min=0.01, t_max=1, min_area=0))
+    for m in layers.meshes:
+        g, d, _ = field.sample(m.vertices)
+        # every layer vertex carries its own isovalue, so two layers (two values of G) never meet
+        assert np.allclose(g, m.metadata["isovalue"], atol=1e-9)
+        assert np.all(H(m.vertices) <= 1e-7)
+    pairs = list(zip(layers.meshes[:-1], layers.meshes[1:]))
+    assert all(a.metadata["isovalue"] < b.metadata["isovalue"] for a, b in pairs)
