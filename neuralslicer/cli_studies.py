@@ -157,37 +157,3 @@ def add_compare_parser(sub: Any) -> None:
     p.add_argument("--rtol", type=float, default=0.0, help="numbers within this relative tolerance count as equal")
     p.add_argument("--all", action="store_true", help="also list the entries that are equal")
     p.set_defaults(func=cmd_compare)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m neuralslicer.cli_studies study|compare ...`: these commands with the `neuralslicer` error handling."""
-    import sys
-
-    from neuralslicer.cli import ArgumentParser
-    from neuralslicer.errors import NeuralSlicerError
-
-    parser = ArgumentParser(prog="neuralslicer", description="Neural Slicer studies and comparisons.")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
-    add_study_parser(sub)
-    add_compare_parser(sub)
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except InputError as exc:
-        if args.debug:
-            raise
-        print(f"neuralslicer: error: {exc.where}: {exc.message}", file=sys.stderr)
-        return 2
-    except NeuralSlicerError as exc:
-        if args.debug:
-            raise
-        print(f"neuralslicer: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

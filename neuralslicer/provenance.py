@@ -21,15 +21,6 @@ PACKAGES = (
 )
 
 
-def _sha256(path: Path) -> str:
-    """sha256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def package_versions() -> dict[str, str]:
     """Installed versions of the packages that shape the results, and the Python version."""
     out = {"python": platform.python_version()}
@@ -97,16 +88,16 @@ def seeds(config: BaseModel) -> dict[str, int]:
 
 def input_hashes(spec: BaseModel, extra_files: dict[str, str | Path] | None = None) -> dict[str, Any]:
     """sha256 of every input file (spec components, spec file, extra inputs such as a user field) and the spec digest."""
-    from neuralslicer.model.spec import spec_digest
+    from neuralslicer.model.spec import file_sha256, spec_digest
 
     files: dict[str, str] = {}
     for f in getattr(spec, "files", lambda: [])():
-        files[str(Path(f))] = _sha256(Path(f))
+        files[str(Path(f))] = file_sha256(Path(f))
     source = getattr(spec, "source", None)
     if source is not None and Path(source).is_file():
-        files[str(source)] = _sha256(Path(source))
+        files[str(source)] = file_sha256(Path(source))
     for label, f in (extra_files or {}).items():
-        files[f"{label}:{f}"] = _sha256(Path(f))
+        files[f"{label}:{f}"] = file_sha256(Path(f))
     return {"spec_sha256": spec_digest(spec), "files": files}
 
 

@@ -85,11 +85,11 @@ def test_compare_command_prints_a_table_and_exits_0(tmp_path: Path) -> None:
     a = _run_folder(tmp_path / "a", {"n_layers": 10, "sf.overhang_area_fraction": 0.25})
     b = _run_folder(tmp_path / "b", {"n_layers": 10, "sf.overhang_area_fraction": 0.125})
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
-    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli_studies", "compare", str(a), str(b)], cwd=REPO,
+    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(b)], cwd=REPO,
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "sf.overhang_area_fraction" in done.stdout and "0.25" in done.stdout and "0.125" in done.stdout
     assert "n_layers" not in done.stdout and "1 difference(s)" in done.stdout
-    bad = subprocess.run([sys.executable, "-m", "neuralslicer.cli_studies", "compare", str(a), str(tmp_path / "x")],
+    bad = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(tmp_path / "x")],
                          cwd=REPO, capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "neuralslicer: error:" in bad.stderr

@@ -11,7 +11,7 @@ from flows.branch import make_user_field, store_user_field
 from flows.dask_support import StudyDaskTaskRunner
 from flows.studies import StudyOptions, batch_branches, cage_branches, initial_guess_branches, task_runner
 from flows.study_report import markdown_table, table_rows
-from neuralslicer.cli_studies import main as studies_main
+from neuralslicer.cli import main as studies_main
 from neuralslicer.errors import InputError
 from neuralslicer.neural.initial_guess import user_field_on_cage
 from storage import ArtifactStore

@@ -293,7 +293,7 @@ def spec_for_file(path: str | Path, up: str = "z", units: str = "mm") -> ModelSp
                           where="command line", folder=Path.cwd())
 
 
-def _file_digest(path: Path) -> str:
+def file_sha256(path: Path) -> str:
     """sha256 of a file's bytes."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
@@ -310,6 +310,6 @@ def spec_digest(spec: ModelSpec) -> str:
     """
     data = spec.model_dump(mode="json")
     for comp, model in zip(data["components"], spec.components):
-        comp["file"] = {"sha256": _file_digest(Path(model.file)), "suffix": Path(model.file).suffix.lower()}
+        comp["file"] = {"sha256": file_sha256(Path(model.file)), "suffix": Path(model.file).suffix.lower()}
     blob = json.dumps(data, sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()
