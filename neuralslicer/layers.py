@@ -178,7 +178,56 @@ def trim(
     tri_c = np.stack([c01[two], mf[two, 2], c02[two]], axis=1)
     new_faces = np.concatenate([keep, tri_a, tri_b, tri_c])
     new_src = np.concatenate([src, mixed[one], mixed[two], mixed[two]])
-    return _compact(allpts, new_faces, new_src)
+    return refine_boundary(*_compact(allpts, new_faces, new_src), H, iterations=iterations)
+
+
+def refine_boundary(
+    pts: np.ndarray, faces: np.ndarray, src: np.ndarray, H: Callable[[np.ndarray], np.ndarray],
+    rounds: int = 3, tol: float = 1e-4, iterations: int = 30,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split boundary triangles whose boundary chord leaves the solid (concave borders) at a point on H = 0.
+
+    A trimmed layer's boundary vertices lie on H = 0, but a straight boundary edge along a concave part
+    of the surface cuts outside by its sagitta. Each round moves the midpoint of such an edge towards the
+    opposite vertex, to H = 0 (within the triangle, so on the layer), and splits the triangle in two; a
+    boundary edge belongs to one triangle only, so the mesh stays conforming. Each round divides the
+    sagitta by about four.
+    """
+    for _ in range(rounds):
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+        boundary = (counts[inverse.ravel()] == 1).reshape(3, -1).T  # (f, 3): edge k = (v_k, v_k+1)
+        face_id, k = np.nonzero(boundary)
+        if len(face_id) == 0:
+            break
+        a = faces[face_id, k]
+        b = faces[face_id, (k + 1) % 3]
+        c = faces[face_id, (k + 2) % 3]
+        mid = 0.5 * (pts[a] + pts[b])
+        h_mid = H(mid)
+        bad = h_mid > tol
+        # one split per triangle and round: the worst boundary edge
+        order = np.lexsort((-h_mid, face_id))
+        first = order[np.r_[True, face_id[order][1:] != face_id[order][:-1]]]
+        pick = first[bad[first]]
+        if len(pick) == 0:
+            break
+        h_c = H(pts[c[pick]])
+        ok = h_c <= 0
+        pick = pick[ok]
+        if len(pick) == 0:
+            break
+        new = edge_crossings(pts[c[pick]], mid[pick], h_c[ok], h_mid[pick], H, iterations)
+        m = len(pts) + np.arange(len(pick))
+        pts = np.concatenate([pts, new])
+        f = face_id[pick]
+        first_half = np.stack([a[pick], m, c[pick]], axis=1)
+        second_half = np.stack([m, b[pick], c[pick]], axis=1)
+        faces = faces.copy()
+        faces[f] = first_half
+        faces = np.concatenate([faces, second_half])
+        src = np.concatenate([src, src[f]])
+    return pts, faces, src
 
 
 def edge_crossings(

@@ -122,3 +122,27 @@ def test_layers_of_a_curved_field_are_level_sets_and_do_not_intersect():
         assert np.all(H(m.vertices) <= 1e-7)
     pairs = list(zip(layers.meshes[:-1], layers.meshes[1:]))
     assert all(a.metadata["isovalue"] < b.metadata["isovalue"] for a, b in pairs)
+
+
+def test_trimmed_layer_follows_a_concave_border():
+    """A plane trimmed by a solid with a cylindrical hole: the boundary chords along the hole are refined."""
+    import trimesh
+
+    V, T = cube_grid(6)  # coarse: 1/6 edges against a hole of radius 0.25
+    G = V[:, 2].copy()
+    lpd = field_lpd(V, T, G)
+    H = lambda x: 0.25 - np.linalg.norm(x[:, :2] - 0.5, axis=1)  # inside = outside the hole
+    pts, faces, _ = marching_tets(V, T, G, 0.5, lpd)
+    tp, tf, _ = trim(pts, faces, H, iterations=40)
+    m = trimesh.Trimesh(tp, tf, process=False)
+    assert m.area == pytest.approx(1 - np.pi * 0.25**2, rel=2e-3)
+    rng = np.random.default_rng(0)
+    w = rng.dirichlet(np.ones(3), size=(len(tf), 20))
+    inside_faces = np.einsum("fsk,fkj->fsj", w, tp[tf]).reshape(-1, 3)
+    sagitta_unrefined = (1 / 6) ** 2 / (8 * 0.25)
+    assert H(inside_faces).max() < sagitta_unrefined / 30
+    assert np.allclose(tp[:, 2], 0.5)
+    # conforming: every edge is shared by two faces or lies on the border
+    edges = m.edges_sorted
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert counts.max() <= 2
