@@ -141,6 +141,57 @@ def _marching(
     return out
 
 
+def split_edges_crossing_out(
+    pts: np.ndarray, faces: np.ndarray, H: Callable[[np.ndarray], np.ndarray], rounds: int = 4, tol: float = 1e-4
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bisect edges whose endpoints are inside but whose midpoint is outside the solid (before trimming).
+
+    Vertex signs miss the boundary where it passes between two inside vertices (a concave fillet or a
+    thin gap narrower than the cage elements); a midpoint vertex outside lets `trim` cut there. Only
+    edges near the surface (an endpoint closer than the edge length) are tested. Both triangles of an
+    edge are split, so the mesh stays conforming; the midpoints of a planar triangle stay on the layer.
+    Returns the new points, faces and, per face, the index of the face it came from.
+    """
+    src = np.arange(len(faces))
+    for _ in range(rounds):
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        uniq, inverse = np.unique(edges, axis=0, return_inverse=True)
+        inverse = inverse.ravel().reshape(3, -1).T  # (f, 3): unique edge id of edge k = (v_k, v_k+1)
+        h = H(pts)
+        length = np.linalg.norm(pts[uniq[:, 0]] - pts[uniq[:, 1]], axis=1)
+        near = (h[uniq[:, 0]] <= 0) & (h[uniq[:, 1]] <= 0) & (np.minimum(-h[uniq[:, 0]], -h[uniq[:, 1]]) < length)
+        cand = np.flatnonzero(near)
+        if len(cand) == 0:
+            break
+        h_mid = np.full(len(uniq), -np.inf)
+        h_mid[cand] = H(0.5 * (pts[uniq[cand, 0]] + pts[uniq[cand, 1]]))
+        bad_edge = h_mid > tol
+        if not bad_edge.any():
+            break
+        score = np.where(bad_edge[inverse], h_mid[inverse], -np.inf)
+        k = np.argmax(score, axis=1)
+        rows = np.arange(len(faces))
+        chooses = np.isfinite(score[rows, k])
+        chosen = np.where(chooses, inverse[rows, k], 0)
+        n_faces = np.bincount(inverse.ravel(), minlength=len(uniq))
+        n_chose = np.bincount(chosen[chooses], minlength=len(uniq))
+        split = bad_edge & (n_chose == n_faces)  # every triangle of the edge splits it this round
+        if not split.any():
+            break
+        new_id = np.full(len(uniq), -1, dtype=np.int64)
+        new_id[split] = len(pts) + np.arange(int(split.sum()))
+        pts = np.concatenate([pts, 0.5 * (pts[uniq[split, 0]] + pts[uniq[split, 1]])])
+        f = np.flatnonzero(chooses & split[chosen])
+        kf = k[f]
+        a, b, c = faces[f, kf], faces[f, (kf + 1) % 3], faces[f, (kf + 2) % 3]
+        m = new_id[chosen[f]]
+        faces = faces.copy()
+        faces[f] = np.stack([a, m, c], axis=1)
+        faces = np.concatenate([faces, np.stack([m, b, c], axis=1)])
+        src = np.concatenate([src, src[f]])
+    return pts, faces, src
+
+
 def trim(
     pts: np.ndarray, faces: np.ndarray, H: Callable[[np.ndarray], np.ndarray], iterations: int = 30
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -333,7 +384,9 @@ def extract_layers(
         src_tet = np.concatenate([t for _, _, t in parts])
         face_layer = np.concatenate([np.full(len(f), i) for i, (_, f, _) in enumerate(parts)])
         if len(faces):
+            pts, faces, parent = split_edges_crossing_out(pts, faces, H)
             pts, faces, src = trim(pts, faces, H, config.trim_iterations)
+            src = parent[src]
             src_tet, face_layer = src_tet[src], face_layer[src]
         for i, iso in enumerate(isos):
             mesh, n_drop, a_drop = _layer_mesh(pts, faces[face_layer == i], lpd[src_tet[face_layer == i]], config.min_area)

@@ -146,3 +146,28 @@ def test_trimmed_layer_follows_a_concave_border():
     edges = m.edges_sorted
     _, counts = np.unique(edges, axis=0, return_counts=True)
     assert counts.max() <= 2
+
+
+def test_a_hole_between_the_vertices_is_found_and_cut_out():
+    """A thin vertical hole centred on a layer edge's midpoint: no vertex is in it, the edge split still cuts it out."""
+    import trimesh
+
+    from neuralslicer.layers import split_edges_crossing_out
+
+    V, T = cube_grid(6)
+    G = V[:, 2].copy()
+    lpd = field_lpd(V, T, G)
+    pts, faces, _ = marching_tets(V, T, G, 0.5, lpd)
+    m0 = trimesh.Trimesh(pts, faces, process=False)
+    e = m0.edges_unique[np.argmin(np.linalg.norm(pts[m0.edges_unique].mean(axis=1)[:, :2] - 0.5, axis=1))]
+    centre = pts[e].mean(axis=0)[:2]
+    H = lambda x: 0.03 - np.linalg.norm(x[:, :2] - centre, axis=1)
+    assert np.all(H(pts) < 0)  # every vertex is in the solid: trimming by vertex signs alone sees no hole
+    assert trimesh.Trimesh(*trim(pts, faces, H)[:2], process=False).area == pytest.approx(1.0)
+    sp, sf, parent = split_edges_crossing_out(pts, faces, H)
+    assert np.all(np.isin(parent, np.arange(len(faces)))) and len(sf) > len(faces)
+    tp, tf, _ = trim(sp, sf, H, iterations=40)
+    m = trimesh.Trimesh(tp, tf, process=False)
+    assert m.area < 1 - 0.2 * np.pi * 0.03**2
+    assert np.all(H(tp) <= 1e-9)
+    assert np.allclose(tp[:, 2], 0.5)
