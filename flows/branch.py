@@ -1,7 +1,6 @@
 """One study branch: the slicing pipeline of one model and configuration, run as a Prefect task on any task runner."""
 from __future__ import annotations
 
-import hashlib
 import os
 import socket
 import threading
@@ -14,11 +13,10 @@ from prefect import task
 from prefect.cache_policies import NONE
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError, NeuralSlicerError
-from neuralslicer.model.spec import ModelSpec, spec_digest, spec_for_file
+from neuralslicer.model.spec import ModelSpec, spec_for_file
 from pydantic import BaseModel, ConfigDict, Field
 
-from storage import ArtifactRef, ArtifactStore, digest, write_json_atomic
-from tasks.steps import store_user_field
+from storage import ArtifactStore, write_json_atomic
 
 
 class Branch(BaseModel):
@@ -77,84 +75,40 @@ def worker_identity() -> dict[str, Any]:
     return info
 
 
-def _filtered(task_: Any, params: dict[str, Any]) -> dict[str, Any]:
-    """The parameters a pipeline task accepts (tolerates optional parameters added or removed upstream)."""
-    names = task_.pipeline.signature.parameters
-    return {k: v for k, v in params.items() if k in names}
-
-
 def run_pipeline(branch: Branch) -> dict[str, Any]:
-    """The slicing pipeline for one branch (the slice flow's steps, plus a user-field initial guess); returns its record."""
-    from flows.slice import RunLog, default_objectives, model_name
-    from neuralslicer.provenance import add_to_metrics, provenance, record_provenance
-    from tasks.export import export_outputs
-    from tasks.steps import load_model, make_cage, make_layers, optimise_field_task, sample_surface, solid_surface
+    """The slicing pipeline for one branch (the slice flow's steps, with its user field); returns its record."""
+    from flows.slice import slice_pipeline
 
     start = time.perf_counter()
     started_at = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     spec = load_branch_spec(branch.model, branch.up)
-    config, store = branch.config, ArtifactStore(branch.store).root
-    log = RunLog()
-    objectives = config.objectives if config.objectives is not None else default_objectives(spec)
-    name = model_name(spec)
-    model = log.run(load_model, store=store, name=name, spec=spec, content=spec_digest(spec))
-    solid = log.run(solid_surface, store=store, model=model)
-    samples = log.run(sample_surface, store=store, model=model, config=config.samples)
-    cage = log.run(make_cage, store=store, model=model, samples=samples, config=config.cage)
-    fea = stress = verify = None
-    if "sr" in objectives or getattr(config, "verify", False):
-        from tasks import fea as fea_tasks
-
-        fea = log.run(fea_tasks.fea_task, store=store, model=model)
-        if "sr" in objectives:
-            stress = log.run(fea_tasks.stress_samples_task, store=store, model=model, fea=fea)
-    user = store_user_field(store, name, branch.user_field) if branch.user_field else None
-    field_params = dict(store=store, model=model, cage=cage, samples=samples, stress=stress, objectives=objectives,
-                        config=config.neural, user_field=user)
-    checkpoints = _checkpoints_before(optimise_field_task, field_params, objectives)
-    field_ref = log.run(optimise_field_task, **field_params)
-    layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
-    printing = None
-    if "printing" in export_outputs.pipeline.signature.parameters:  # toolpaths and machine program (issue 4)
-        from neuralslicer.motion.profile import load_profile
-        from tasks.steps import plan_print_task
-
-        printing = log.run(plan_print_task, store=store, model=model, layers=layers, config=config.toolpath,
-                           machine=load_profile(config.machine))
-    if getattr(config, "verify", False):
-        from tasks import fea as fea_tasks
-
-        verify = log.run(fea_tasks.verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
-    export_params = dict(store=store, out_dir=branch.out_dir, model=model, solid=solid, samples=samples, cage=cage,
-                         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify,
-                         robot=getattr(config, "robot", False), alpha_deg=config.alpha_deg,
-                         beta_deg=config.neural.loss.beta_deg)
-    log.run(export_outputs, **_filtered(export_outputs, export_params))
-    record = provenance(spec, config, {"user_field": branch.user_field} if branch.user_field else None,
-                        {"branch": branch.name, "store": store})
-    prov_digest = record_provenance(branch.out_dir, store, name, record)
-    add_to_metrics(branch.out_dir, record)
+    store = ArtifactStore(branch.store).root
+    run = slice_pipeline(spec, branch.out_dir, branch.config, store, branch.user_field, {"branch": branch.name})
     st = ArtifactStore(store)
+    field_ref, cage = run.refs["field"], run.refs["cage"]
     field_attrs, cage_attrs = st.attrs(field_ref.path), st.attrs(cage.path)
     steps = int(field_attrs.get("steps", 0) or 0)
+    # a field computed in this run that started from a checkpoint: the checkpoint it resumed from
+    field_state = dict(run.states)["field"]
+    resumed_step = field_attrs.get("resumed_from_step") if field_state != "Cached" else None
     result = {
         "name": branch.name,
         "parameters": branch.parameters,
-        "model": name,
+        "model": run.name,
         "out_dir": branch.out_dir,
-        "tasks": [{"task": t, "state": s} for t, s in log.states],
-        "all_cached": all(s == "Cached" for _, s in log.states),
+        "tasks": [{"task": t, "state": s} for t, s in run.states],
+        "all_cached": all(s == "Cached" for _, s in run.states),
         "final_loss": field_attrs.get("final") or {},
         "satisfaction": field_attrs.get("satisfaction") or {},
         "field": {"path": field_ref.path, "steps": steps, "converged": field_attrs.get("converged"),
                   "optimise_wall_s": field_attrs.get("wall_time_s"),
                   "s_per_step": (field_attrs["wall_time_s"] / steps) if steps and field_attrs.get("wall_time_s") else None,
-                  "resumed_from_checkpoint": checkpoints,
+                  "resumed_from_checkpoint": None if resumed_step is None else f"step_{resumed_step:08d}",
                   "resumed_from_step": field_attrs.get("resumed_from_step")},
         "cage": {"path": cage.path, "n_elements": cage_attrs.get("n_elements"), "genus": cage_attrs.get("genus"),
                  "n_vertices": cage_attrs.get("n_vertices"), "wall_s": cage_attrs.get("wall_s")},
         "metrics": _metrics(branch.out_dir),
-        "provenance_digest": prov_digest,
+        "provenance_digest": run.provenance_digest,
         "worker": worker_identity(),
         "started_at": started_at,
         "wall_s": time.perf_counter() - start,
@@ -162,15 +116,6 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
     }
     write_json_atomic(Path(branch.out_dir) / "branch.json", result)
     return result
-
-
-def _checkpoints_before(task_: Any, params: dict[str, Any], objectives: list[str]) -> str | None:
-    """The newest checkpoint of this optimisation that exists before it runs (a resumed run), if any."""
-    if not objectives or task_.pipeline.done(params):
-        return None
-    out = task_.pipeline.output(params)
-    names = ArtifactStore(out.store).children(f"{out.model}/checkpoints/{out.digest}")
-    return names[-1] if names else None
 
 
 def _metrics(out_dir: str) -> dict[str, Any]:

@@ -62,15 +62,25 @@ def default_objectives(spec: ModelSpec) -> list[str]:
     return ["sf", "po"] + (["sr"] if getattr(spec, "fea", None) is not None else [])
 
 
-@flow(name="neuralslicer-slice")
-def slice_flow(
-    spec: ModelSpec, out_dir: str, config: SliceConfig, store: str, user_field: str | None = None
-) -> dict[str, Any]:
-    """Slice one model: every step a cached task whose artifacts live in the store; outputs in out_dir.
+@dataclass
+class SliceRun:
+    """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest."""
 
-    `user_field`: an .npz (points (p,3) in the build frame, values (p,)) for the `user` initial guess.
-    """
-    start = time.perf_counter()
+    name: str
+    states: list[tuple[str, str]]
+    refs: dict[str, ArtifactRef | None]
+    provenance_digest: str
+
+
+def slice_pipeline(
+    spec: ModelSpec,
+    out_dir: str,
+    config: SliceConfig,
+    store: str,
+    user_field: str | None = None,
+    provenance_extra: dict[str, Any] | None = None,
+) -> SliceRun:
+    """Run every step of the slicing pipeline (cached tasks) and write the outputs and provenance to out_dir."""
     log = RunLog()
     objectives = config.objectives if config.objectives is not None else default_objectives(spec)
     name = model_name(spec)
@@ -111,13 +121,29 @@ def slice_flow(
         alpha_deg=config.alpha_deg,
         beta_deg=config.neural.loss.beta_deg,
     )
-    record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None, extra={"store": store})
+    record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
+                        extra={**(provenance_extra or {}), "store": store})
     provenance_digest = record_provenance(out_dir, store, name, record)
     add_to_metrics(out_dir, record)
+    refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "fea": fea, "stress_samples": stress,
+            "field": field_ref, "layers": layers, "toolpaths": printing, "verify": verify}
+    return SliceRun(name, log.states, refs, provenance_digest)
+
+
+@flow(name="neuralslicer-slice")
+def slice_flow(
+    spec: ModelSpec, out_dir: str, config: SliceConfig, store: str, user_field: str | None = None
+) -> dict[str, Any]:
+    """Slice one model: every step a cached task whose artifacts live in the store; outputs in out_dir.
+
+    `user_field`: an .npz (points (p,3) in the build frame, values (p,)) for the `user` initial guess.
+    """
+    start = time.perf_counter()
+    run = slice_pipeline(spec, out_dir, config, store, user_field)
     summary = {
-        "provenance_digest": provenance_digest,
-        "tasks": [{"task": t, "state": s} for t, s in log.states],
-        "all_cached": all(s == "Cached" for _, s in log.states),
+        "provenance_digest": run.provenance_digest,
+        "tasks": [{"task": t, "state": s} for t, s in run.states],
+        "all_cached": all(s == "Cached" for _, s in run.states),
         "wall_s": time.perf_counter() - start,
         "store": store,
         "out_dir": out_dir,
