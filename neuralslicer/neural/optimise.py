@@ -17,6 +17,7 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
+from neuralslicer.metrics import overhang_area_fraction, strength_satisfaction
 from neuralslicer.neural import losses as L
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.deformation import ArapDeformation
@@ -197,15 +198,13 @@ class FieldProblem:
         with |d.tau| <= sin b, for per-tet unit LPDs (m,3)."""
         cl = self.config.loss
         out: dict[str, float] = {}
-        if len(self.b_tet):
-            dots = -np.einsum("ij,ij->i", self.b_normals, lpd[self.b_tet])
-            over = dots > math.sin(math.radians(cl.alpha_deg))
-            w = self.b_areas
-            out["sf_supported_fraction"] = float(w[~over].sum() / w.sum())
-            out["overhang_area_fraction"] = float(w[over].sum() / w.sum())
+        if len(self.b_tet):  # B holds the non-platform samples only
+            over = overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(self.b_tet), bool),
+                                          lpd[self.b_tet], cl.alpha_deg)
+            out["sf_supported_fraction"] = 1.0 - over
+            out["overhang_area_fraction"] = over
         if len(self.t_tet):
-            ok = np.abs(np.einsum("ij,ij->i", self.t_tau, lpd[self.t_tet])) <= math.sin(math.radians(cl.beta_deg))
-            out["sr_satisfied_fraction"] = float(self.t_volumes[ok].sum() / self.t_volumes.sum())
+            out["sr_satisfied_fraction"] = strength_satisfaction(self.t_tau, self.t_volumes, lpd[self.t_tet], cl.beta_deg)
         return out
 
 
