@@ -29,7 +29,7 @@ from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.neural.config import DeformationConfig
 from neuralslicer.neural.deformation import ArapDeformation
 from neuralslicer.neural.optimise import FieldProblem
-from neuralslicer.neural.synthetic import grid_tets
+from neuralslicer.tetmesh import box_tet_grid
 
 RESULTS = Path(__file__).parent / "results" / "bench_neural.json"
 #: grid shapes giving about 5k, 20k and 50k tets (6 per cell)
@@ -63,7 +63,7 @@ def _sphere_samples(lo: np.ndarray, hi: np.ndarray, n: int = 4000, k: int = 10):
 def _cage(size: str):
     """Structured cage of the named size in a 100 mm box."""
     shape = SIZES[size]
-    return grid_tets(shape, np.zeros(3), 100.0 * np.asarray(shape) / max(shape))
+    return box_tet_grid(shape, np.zeros(3), 100.0 * np.asarray(shape) / max(shape))
 
 
 def bench_solve(sizes: list[str], repeats: int = 20) -> list[dict]:

@@ -123,17 +123,20 @@ class TetLocator:
         return best_tet, best_bary
 
 
-def box_tet_grid(n: int, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Structured tet mesh of a box: n³ cubes of 6 tets each (Kuhn subdivision), positively oriented."""
+# Kuhn subdivision of a cube (corner c = 4 i + 2 j + k) into 6 tets sharing the diagonal 0-7
+_CUBE_TETS = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
+
+
+def box_tet_grid(
+    n: int | tuple[int, int, int], lo: np.ndarray | None = None, hi: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Structured tet mesh of a box: n (or nx×ny×nz) cells of 6 tets each (Kuhn subdivision), positively oriented."""
+    shape = (n, n, n) if isinstance(n, int) else tuple(int(v) for v in n)
     lo = np.zeros(3) if lo is None else np.asarray(lo, dtype=np.float64)
     hi = np.ones(3) if hi is None else np.asarray(hi, dtype=np.float64)
-    axes = [np.linspace(lo[i], hi[i], n + 1) for i in range(3)]
+    axes = [np.linspace(lo[d], hi[d], shape[d] + 1) for d in range(3)]
     vertices = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    c = {
-        (i, j, k): idx[i : i + n, j : j + n, k : k + n].ravel() for i in (0, 1) for j in (0, 1) for k in (0, 1)
-    }
-    paths = [((1, 0, 0), (1, 1, 0)), ((1, 0, 0), (1, 0, 1)), ((0, 1, 0), (1, 1, 0)),
-             ((0, 1, 0), (0, 1, 1)), ((0, 0, 1), (1, 0, 1)), ((0, 0, 1), (0, 1, 1))]
-    tets = np.concatenate([np.stack([c[(0, 0, 0)], c[a], c[b], c[(1, 1, 1)]], axis=1) for a, b in paths])
-    return vertices, orient_tets(vertices, tets)
+    idx = np.arange(len(vertices)).reshape(shape[0] + 1, shape[1] + 1, shape[2] + 1)
+    i, j, k = (a.ravel() for a in np.meshgrid(*(np.arange(s) for s in shape), indexing="ij"))
+    corners = np.stack([idx[i + (c >> 2 & 1), j + (c >> 1 & 1), k + (c & 1)] for c in range(8)], axis=1)
+    return vertices, orient_tets(vertices, corners[:, _CUBE_TETS].reshape(-1, 4))

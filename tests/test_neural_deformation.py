@@ -9,13 +9,13 @@ from neuralslicer.neural.config import DeformationConfig, NetworkConfig
 from neuralslicer.neural.deformation import CENTRING, ArapDeformation, arap_matrix, factor_solve
 from neuralslicer.neural.field import CageGeometry, field_gradient
 from neuralslicer.neural.networks import DeformationFields, quaternion_to_matrix
-from neuralslicer.neural.synthetic import grid_tets
+from neuralslicer.tetmesh import box_tet_grid
 
 
 @pytest.fixture(scope="module")
 def small_cage():
     """A 2x2x3 box of 72 tets, slightly jittered so that nothing is axis-aligned by accident."""
-    V, T = grid_tets((2, 2, 3), np.array([0.0, 0.0, 0.0]), np.array([2.0, 3.0, 4.0]))
+    V, T = box_tet_grid((2, 2, 3), np.array([0.0, 0.0, 0.0]), np.array([2.0, 3.0, 4.0]))
     rng = np.random.default_rng(1)
     V = V + 0.05 * rng.standard_normal(V.shape)
     return V, T

@@ -8,7 +8,7 @@ import torch
 
 from neuralslicer.neural import losses as L
 from neuralslicer.neural.field import CageGeometry, field_gradient
-from neuralslicer.neural.synthetic import grid_tets
+from neuralslicer.tetmesh import box_tet_grid
 
 RNG = np.random.default_rng(7)
 
@@ -103,7 +103,7 @@ def test_crease_sign_and_value_on_a_valley_and_a_ridge():
 
 
 def test_crease_is_zero_for_planar_layers_on_a_grid():
-    V, T = grid_tets((2, 2, 2), np.zeros(3), np.ones(3))
+    V, T = box_tet_grid((2, 2, 2), np.zeros(3), np.ones(3))
     geo = CageGeometry.build(V, T)
     grad = field_gradient(torch.tensor(V[:, 2] + 0.3 * V[:, 0]), torch.tensor(geo.tets), torch.tensor(geo.bary_grads))
     x, c = L.crease_concavity(grad, torch.tensor(geo.pairs), torch.tensor(geo.pair_normals))

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.neural.device import resolve_device
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, user_field_on_cage
-from neuralslicer.neural.synthetic import grid_tets
+from neuralslicer.tetmesh import box_tet_grid
 
 
 def _sphere_samples(n: int = 300, radius: float = 4.0, centre=(5.0, 5.0, 5.0), k: int = 10):
@@ -29,7 +29,7 @@ def _sphere_samples(n: int = 300, radius: float = 4.0, centre=(5.0, 5.0, 5.0), k
 
 @pytest.fixture(scope="module")
 def problem():
-    V, T = grid_tets((4, 4, 4), np.zeros(3), np.full(3, 10.0))
+    V, T = box_tet_grid((4, 4, 4), np.zeros(3), np.full(3, 10.0))
     return V, T, _sphere_samples()
 
 
@@ -106,7 +106,7 @@ def test_zero_steps_is_the_planar_field(problem):
 
 
 def test_heat_geodesic_on_a_box_is_the_height():
-    V, T = grid_tets((3, 3, 6), np.zeros(3), np.array([3.0, 3.0, 6.0]))
+    V, T = box_tet_grid((3, 3, 6), np.zeros(3), np.array([3.0, 3.0, 6.0]))
     phi = heat_geodesic(V, T, V[:, 2] <= 1e-9)
     assert np.abs(phi - V[:, 2]).max() < 0.07 * V[:, 2].max()  # coarse-mesh error of the method
     assert np.corrcoef(phi, V[:, 2])[0, 1] > 0.995
@@ -114,7 +114,7 @@ def test_heat_geodesic_on_a_box_is_the_height():
 
 
 def test_height_matching_and_user_field_interpolation():
-    V, T = grid_tets((2, 2, 2), np.zeros(3), np.array([1.0, 1.0, 4.0]))
+    V, T = box_tet_grid((2, 2, 2), np.zeros(3), np.array([1.0, 1.0, 4.0]))
     f = height_matched(3 * V[:, 0] + 1, V)
     assert np.isclose(f.min(), 0) and np.isclose(f.max(), 4)
     pts = np.random.default_rng(0).uniform(-0.2, 1.2, (400, 3)) * [1, 1, 4]

@@ -2,24 +2,13 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from neuralslicer.fea.solver import FEAResult
-
-
-def _atomic_path(final: Path) -> Path:
-    """A fresh temporary file name next to ``final``, with the same suffix."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=final.suffix, dir=final.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)          # mkstemp makes 0600; the final file gets the usual mode
-    return Path(tmp)
+from storage.files import atomic_path, write_text_atomic
 
 
 def to_vtk(result: FEAResult, cell_data: dict[str, np.ndarray] | None = None) -> Any:
@@ -73,10 +62,9 @@ def plot_field(result: FEAResult, values: np.ndarray, path: str | Path,
     fig.colorbar(im, ax=list(axes), label=label, shrink=0.9)
     fig.suptitle(f"{label}: max {vmax:.4g}   ({g.n_voxels} voxels of {g.spacing:.3g} mm)")
     path = Path(path)
-    tmp = _atomic_path(path)
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    os.replace(tmp, path)
     return path
 
 
@@ -102,13 +90,10 @@ def write_fea_outputs(result: FEAResult, out_dir: str | Path) -> dict[str, Any]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     vtu = out / "fea.vtu"
-    tmp = _atomic_path(vtu)
-    to_vtk(result).save(str(tmp))
-    os.replace(tmp, vtu)
+    with atomic_path(vtu) as tmp:
+        to_vtk(result).save(str(tmp))
     plot_field(result, result.von_mises, out / "fea_von_mises.png")
     metrics = fea_metrics(result)
     mpath = out / "metrics.json"
-    tmp = _atomic_path(mpath)
-    tmp.write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, mpath)
+    write_text_atomic(mpath, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     return metrics

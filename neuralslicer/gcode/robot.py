@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralslicer.toolpath.io import atomic_path
+from storage.files import atomic_path
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray
 

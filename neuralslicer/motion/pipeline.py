@@ -14,7 +14,8 @@ from neuralslicer.motion.planning import MachineProgram, plan_motion, program_me
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
-from neuralslicer.toolpath.io import atomic_path, plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
+from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
+from storage.files import atomic_path
 from neuralslicer.toolpath.types import Toolpaths
 
 

@@ -1,34 +1,15 @@
 """Toolpath files: waypoints CSV, VTP polylines (pyvista), PNG preview; all written atomically."""
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from neuralslicer.errors import InputError
 from neuralslicer.toolpath.types import Toolpaths
+from storage.files import atomic_path
 
 CSV_COLUMNS = ("layer", "path", "x", "y", "z", "nx", "ny", "nz", "thickness", "width", "extrude")
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path`` (same suffix); moved over ``path`` on success."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def write_waypoints_csv(path: str | Path, tp: Toolpaths) -> Path:
