@@ -14,12 +14,13 @@ from neuralslicer.config import SliceConfig
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.provenance import add_to_metrics, provenance, record_provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
-from neuralslicer.motion.profile import load_profile
+from neuralslicer.motion.profile import MachineProfile, load_profile
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
 from tasks.common import run_step
 from tasks.export import export_outputs
 from tasks.fea import fea_task, stress_samples_task, verify_task
 from tasks.steps import (
+    blend_field_task,
     load_model,
     make_cage,
     make_layers,
@@ -55,6 +56,43 @@ def smoother(config: NeuralConfig, factor: float) -> NeuralConfig:
     """The neural config with the harmonic (smoothness) weights multiplied."""
     loss = config.loss.model_copy(update={"w_hs": config.loss.w_hs * factor, "w_hq": config.loss.w_hq * factor})
     return config.model_copy(update={"loss": loss})
+
+
+def blend_until_collision_free(
+    log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef, config: SliceConfig,
+    machine: MachineProfile,
+) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
+    """The smallest blend t of the field toward planar layers ((1-t) G + t z) whose print is collision-free.
+
+    Bisection on t in (0, 1] for `collision_blend_steps` steps; planar layers (t = 1) print bottom-up with a
+    vertical nozzle, so they are collision-free and end the search when no smaller t is.
+    """
+    logger = get_run_logger()
+    lo, hi, best = 0.0, 1.0, None
+    for _ in range(config.collision_blend_steps):
+        t = 0.5 * (lo + hi)
+        result = _blended_print(log, store, model, cage, field_ref, config, machine, t)
+        n = ArtifactStore(store).attrs(result[2].path)["metrics"].get("n_collisions", 0)
+        logger.warning("planar blend %.3g: %d nozzle collisions", t, n)
+        if n == 0:
+            hi, best = t, result
+        else:
+            lo = t
+    if best is None:
+        best = _blended_print(log, store, model, cage, field_ref, config, machine, 1.0)
+        n = ArtifactStore(store).attrs(best[2].path)["metrics"].get("n_collisions", 0)
+        logger.warning("planar layers: %d nozzle collisions", n)
+    return best
+
+
+def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef,
+                   config: SliceConfig, machine: MachineProfile, t: float) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
+    """Blend, layers and print for one blend weight t."""
+    blended = log.run(blend_field_task, store=store, cage=cage, field=field_ref, planar=t)
+    layers = log.run(make_layers, store=store, model=model, cage=cage, field=blended, config=config.layers)
+    printing = log.run(plan_print_task, store=store, model=model, layers=layers, config=config.toolpath,
+                       machine=machine)
+    return blended, layers, printing
 
 
 def default_objectives(spec: ModelSpec) -> list[str]:
@@ -113,6 +151,8 @@ def slice_pipeline(
         objectives = sorted(set(objectives) | {"ca"})
         get_run_logger().warning("%d nozzle collisions: re-optimising with harmonic weights x%g", collisions,
                                  config.collision_smoothness_factor)
+    if collisions and objectives and config.collision_fallback == "blend":
+        field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine)
     if config.verify:
         verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
     log.run(

@@ -76,6 +76,8 @@ def build_config(args: argparse.Namespace) -> Any:
         data["robot"] = True
     if args.collision_retries is not None:
         data["collision_retries"] = args.collision_retries
+    if args.collision_fallback is not None:
+        data["collision_fallback"] = args.collision_fallback
     if args.machine is not None:
         data["machine"] = args.machine
     if args.init is not None:
@@ -225,7 +227,10 @@ def add_slice_parser(sub: Any) -> None:
     p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
     p.add_argument("--robot", action="store_true", help="also write robot_waypoints.csv/.json")
     p.add_argument("--collision-retries", type=int, default=None,
-                   help="re-optimise with smoother fields and the collision term while the nozzle collides (default 0)")
+                   help="re-optimise with smoother fields and the collision term while the nozzle collides (default 2)")
+    p.add_argument("--collision-fallback", choices=("blend", "none"), default=None,
+                   help="still colliding: blend the field toward planar layers until collision-free (default blend) "
+                        "or keep the colliding program")
     p.add_argument("--verify", action="store_true", help="anisotropic FEA of planar vs computed layers (spec needs fea)")
     p.set_defaults(func=cmd_slice)
 

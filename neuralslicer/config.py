@@ -38,8 +38,12 @@ class SliceConfig(BaseModel):
     toolpath: ToolpathConfig = Field(default_factory=ToolpathConfig)
     machine: str = Field("table_bc_linuxcnc", description="machine profile: a shipped name or a YAML file")
     robot: bool = Field(False, description="also write robot_waypoints.csv/.json (position, tool quaternion, extrusion)")
-    collision_retries: int = Field(0, ge=0, le=5, description="re-optimise with smoother fields while the nozzle collides")
-    collision_smoothness_factor: float = Field(10.0, gt=1, description="harmonic weights multiplied per retry")
+    collision_retries: int = Field(2, ge=0, le=5, description="re-optimise with smoother fields while the nozzle collides")
+    collision_smoothness_factor: float = Field(100.0, gt=1, description="harmonic weights multiplied per retry")
+    collision_fallback: Literal["blend", "none"] = Field(
+        "blend", description="still colliding after the retries: blend the field toward planar layers "
+        "((1-t) G + t z, the smallest t found by bisection that is collision-free; t = 1 is planar) or keep it")
+    collision_blend_steps: int = Field(3, ge=1, le=8, description="bisection steps of the planar blend")
     verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
 
     @classmethod

@@ -23,6 +23,7 @@ STEP_VERSIONS = {
     "fea": "1",
     "stress_samples": "1",
     "field": "1",
+    "field_blend": "1",
     "layers": "3",
     "toolpaths": "1",
     "verify": "1",

@@ -144,6 +144,7 @@ def export_outputs(
         "field.kind": field_attrs.get("kind", "neural"),
         "field.objectives": ",".join(field_attrs.get("objectives", [])),
         "field.steps": field_attrs.get("steps", 0),
+        "field.blend_planar": field_attrs.get("blend_planar", 0.0),
     }
     metrics.update({f"layers.{k}": v for k, v in attrs["layers"]["report"].items()})
     metrics.update({f"loss.{k}": v for k, v in (field_attrs.get("final") or {}).items()})

@@ -123,6 +123,17 @@ def optimise_field_task(
     )
 
 
+@pipeline_task("field_blend")
+def blend_field_task(out: ArtifactRef, store: str, cage: ArtifactRef, field: ArtifactRef, planar: float) -> tuple[dict, dict]:
+    """The field blended toward planar layers, (1 - planar) G + planar z: the last resort against collisions."""
+    arrays, attrs = ArtifactStore(store).read(field.path)
+    c = read_cage(cage)
+    blended = ScalarField(c.vertices, c.tets, (1.0 - planar) * np.asarray(arrays["G"], np.float64) + planar * c.vertices[:, 2])
+    arrays = {**arrays, "G": blended.G, "lpd": blended.lpd()}
+    get_run_logger().info("field blended toward planar layers: %.3g", planar)
+    return arrays, {**attrs, "blend_planar": float(planar)}
+
+
 @pipeline_task("layers")
 def make_layers(
     out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, config: LayerConfig

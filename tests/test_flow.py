@@ -156,3 +156,34 @@ def test_unknown_option_is_one_line_exit_2(tmp_path, small_part, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--frobnicate" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
+    # a print head whose wide cone grazes the part as soon as the tool tilts: the optimised field collides
+    from neuralslicer.motion import load_profile
+
+    profile = load_profile("table_bc_linuxcnc").model_dump(mode="json")
+    profile["nozzle"] = {"cone_half_angle_deg": 85.0, "cone_length": 3.0, "holder_radius": 1.0, "holder_length": 1.0}
+    machine = tmp_path / "wide_nozzle.yaml"
+    machine.write_text(yaml.safe_dump(profile))
+    out = tmp_path / "run"
+    keep = write_config(tmp_path / "keep.yaml", machine=str(machine))
+    assert main(slice_cmd(small_part, out, keep, "--objectives", "sf")) == 0
+    colliding = json.loads((out / "metrics.json").read_text())
+    assert colliding["collisions"] > 0 and colliding["field.blend_planar"] == 0.0
+    assert colliding["sf.overhang_area_fraction"] < colliding["sf.overhang_area_fraction_planar"]
+
+    blend = write_config(tmp_path / "blend.yaml", machine=str(machine), collision_retries=1, collision_fallback="blend",
+                         collision_blend_steps=2)
+    assert main(slice_cmd(small_part, out, blend, "--objectives", "sf")) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    tasks = [r["task"] for r in json.loads((out / "run.json").read_text())["tasks"]]
+    assert metrics["collisions"] == 0 and 0.0 < metrics["field.blend_planar"] <= 1.0
+    runs = json.loads((out / "run.json").read_text())["tasks"]
+    # the paper's fallback first (one re-optimisation with larger harmonic weights and CA), then the blend
+    assert [r["state"] for r in runs if r["task"] == "field"] == ["Cached", "Completed"]
+    assert tasks.count("field_blend") >= 2
+    assert metrics["field.objectives"] == "ca,sf"
+    # the blend keeps part of the optimised field's gain unless it had to go all the way to planar layers
+    if metrics["field.blend_planar"] < 1.0:
+        assert metrics["sf.overhang_area_fraction"] <= metrics["sf.overhang_area_fraction_planar"]

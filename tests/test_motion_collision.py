@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from neuralslicer.motion import check_collisions, load_profile, platform_clearance
-from neuralslicer.motion.collision import PART, PLATFORM, head_collisions, head_parts
+from neuralslicer.motion.collision import PART, PLATFORM, head_collisions, head_cores, head_parts
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, planar_stack, square_layer
@@ -74,8 +74,20 @@ def test_head_check_is_exact_on_random_clouds():
     assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
     for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
         assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
-    # the enclosing balls contain the head: the rims are inside them
-    (c_cone, r_cone), (c_hold, r_hold) = head_parts(NOZZLE, 0.4)
-    rim = 8.0 * np.tan(np.radians(30.0))
-    assert np.hypot(8.0 - c_cone, rim) <= r_cone + 1e-9 and np.hypot(c_cone - 0.4, 0.4 * rim / 8) <= r_cone + 1e-9
-    assert np.hypot(15.0, 15.0) <= r_hold + 1e-9
+    # the enclosing balls cover the head and the core balls lie inside it (dense samples of both)
+    h = rng.uniform(0.4, 38.0, 20000)
+    radial = rng.uniform(0, 1, 20000) ** 0.5 * np.where(h <= 8.0, h * np.tan(np.radians(30.0)), 15.0)
+    ang = rng.uniform(0, 2 * np.pi, 20000)
+    head_pts = np.c_[radial * np.cos(ang), radial * np.sin(ang), h]
+    assert _inside_head(head_pts, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
+    parts = head_parts(NOZZLE, 0.4)
+    covered = np.zeros(len(head_pts), bool)
+    for c, r in parts:
+        covered |= np.linalg.norm(head_pts - [0, 0, c], axis=1) <= r + 1e-9
+    assert covered.all()
+    for c, r in head_cores(NOZZLE, 0.4):
+        d = rng.normal(size=(5000, 3))
+        ball = d / np.linalg.norm(d, axis=1, keepdims=True) * r * rng.uniform(0, 1, (5000, 1)) ** (1 / 3) + [0, 0, c]
+        assert _inside_head(ball, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
+    # tighter than one ball per part: the holder balls are smaller than the holder's enclosing ball
+    assert max(r for _, r in parts) < np.hypot(15.0, 15.0)

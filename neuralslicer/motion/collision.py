@@ -4,16 +4,20 @@ The print head is a cone (apex at the tool tip, axis along the tool axis, half a
 from the profile) topped by a holder cylinder. The printed material is represented by the
 waypoints of all *previous* layers (points on the top surfaces of the deposited beads), kept in
 a log-structured set of KD-trees (Bentley-Saxe: O(log L) trees, amortised O(N log N) building).
-For every waypoint, the material points inside two balls (one enclosing the cone above
-``min_height``, one enclosing the holder) are fetched from the trees (counted first in C, so poses
+For every waypoint, material points inside balls that lie wholly in the head (the largest ball in
+the cone, a row of balls in the holder) certify a hit with one nearest-neighbour query each; for
+the poses left, the points inside balls that together enclose the head (slabs of the cone and
+the holder, each about as long as wide) are fetched from the trees (counted first in C, so poses
 with nothing nearby cost one query each) and tested exactly against the cone and the cylinder.
-On a part printed bottom-up the previous layers lie below the tip and outside both balls, so
-the check costs about two ball counts per waypoint.
+On a part printed bottom-up the previous layers lie below the tip and outside every ball, so the
+check costs a few ball counts per waypoint.
 The platform test is exact: the lowest point of the cone and of the holder against z = platform_z.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import chain
+from typing import Iterator
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -55,19 +59,47 @@ def _inside_head(d: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: fl
     return cone | holder
 
 
+def _frustum_ball(a: float, b: float, ra: float, rb: float) -> tuple[float, float]:
+    """Smallest ball centred on the axis enclosing the frustum between heights a < b (rim radii ra, rb)."""
+    c = float(np.clip((b * b + rb * rb - a * a - ra * ra) / (2 * (b - a) + 1e-300), a, b))
+    return c, float(max(np.hypot(c - a, ra), np.hypot(b - c, rb)))
+
+
 def head_parts(nozzle: Nozzle, min_height: float) -> list[tuple[float, float]]:
-    """(height of the centre on the axis, radius) of balls enclosing the cone part and the holder."""
+    """(height of the centre on the axis, radius) of balls that together enclose the head above min_height.
+
+    The cone frustum and the holder are cut into slabs about as long as they are wide, each in its own
+    ball, so the candidate points fetched per pose stay close to the head's volume.
+    """
     L = nozzle.cone_length
     h0 = min(max(min_height, 0.0), L)
     ta = np.tan(np.radians(nozzle.cone_half_angle_deg))
-    # cone frustum from h0 to L: the centre c on the axis that balances the lower and upper rims
-    r0, r1 = h0 * ta, L * ta
-    c = float(np.clip((L * L + r1 * r1 - h0 * h0 - r0 * r0) / (2 * (L - h0) + 1e-300), h0, L))
-    parts = [(c, float(max(np.hypot(c - h0, r0), np.hypot(L - c, r1))))]
+    parts = []
+    n_cone = max(1, int(np.ceil((L - h0) / max(2.0 * L * ta, 1e-9))))
+    cuts = np.linspace(h0, L, n_cone + 1)
+    parts += [_frustum_ball(a, b, a * ta, b * ta) for a, b in zip(cuts[:-1], cuts[1:])]
     if nozzle.holder_length > 0:
-        parts.append((L + 0.5 * nozzle.holder_length, float(np.hypot(0.5 * nozzle.holder_length,
-                                                                        nozzle.holder_radius))))
+        R = nozzle.holder_radius
+        n_hold = max(1, int(np.ceil(nozzle.holder_length / max(R, 1e-9))))
+        cuts = np.linspace(L, L + nozzle.holder_length, n_hold + 1)
+        parts += [(0.5 * (a + b), float(np.hypot(0.5 * (b - a), R))) for a, b in zip(cuts[:-1], cuts[1:])]
     return parts
+
+
+def head_cores(nozzle: Nozzle, min_height: float) -> list[tuple[float, float]]:
+    """(height of the centre on the axis, radius) of balls inside the head: a point in one is a hit."""
+    L = nozzle.cone_length
+    sa = np.sin(np.radians(nozzle.cone_half_angle_deg))
+    cores = []
+    c = L / (1.0 + sa)                      # largest ball in the cone below its base: r = c sin(a), c + r = L
+    if c - c * sa >= min_height:
+        cores.append((float(c), float(c * sa)))
+    if nozzle.holder_length > 0:
+        R, Lh = nozzle.holder_radius, nozzle.holder_length
+        r = min(R, 0.5 * Lh)
+        n = max(1, int(np.ceil((Lh - 2 * r) / max(r, 1e-9))) + 1)
+        cores += [(float(h), float(r)) for h in np.linspace(L + r, L + Lh - r, n)]
+    return cores
 
 
 def platform_clearance(xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, platform_z: float) -> FloatArray:
@@ -98,6 +130,18 @@ class _TreeSet:
         self.blocks.append((pts, cKDTree(pts)))
 
 
+def _open_queries(material: _TreeSet, hit: BoolArray, xyz: FloatArray, axis: FloatArray,
+                  balls: list[tuple[float, float]]) -> Iterator[tuple[FloatArray, cKDTree, FloatArray, float, IndexArray]]:
+    """(points, tree, ball centres, radius, poses not yet hit) for each ball of the head and each tree."""
+    for hc, rc in balls:
+        centres = xyz + hc * axis
+        for pts, tree in material.blocks:
+            todo = np.flatnonzero(~hit)
+            if len(todo) == 0:
+                return
+            yield pts, tree, centres, rc, todo
+
+
 def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: float,
                budget: int = 2_000_000) -> tuple[BoolArray, FloatArray]:
     """Exact test of material points against the head at each pose, candidates from ball queries."""
@@ -105,33 +149,33 @@ def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: No
     loc = np.zeros((len(xyz), 3))
     if not material.blocks or len(xyz) == 0:
         return hit, loc
-    for hc, rc in head_parts(nozzle, min_height):
-        centres = xyz + hc * axis
-        for pts, tree in material.blocks:
-            todo = np.flatnonzero(~hit)
-            if len(todo) == 0:
-                return hit, loc
-            counts = tree.query_ball_point(centres[todo], rc, return_length=True)
-            todo, counts = todo[counts > 0], counts[counts > 0]
-            # chunks of poses with a bounded number of candidate pairs
-            bounds = np.searchsorted(np.cumsum(counts), np.arange(budget, counts.sum() + budget, budget))
-            start = 0
-            for stop in np.unique(np.concatenate([bounds + 1, [len(todo)]])):
-                stop = int(min(max(stop, start + 1), len(todo)))
-                if stop <= start:
-                    continue
-                ids = todo[start:stop]
-                lists = tree.query_ball_point(centres[ids], rc)
-                n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-                cand = np.fromiter((j for x in lists for j in x), np.int64, int(n_c.sum()))
-                pose = np.repeat(ids, n_c)
-                inside = _inside_head(pts[cand] - xyz[pose], axis[pose], nozzle, min_height)
-                hp, hq = pose[inside], cand[inside]
-                first = np.unique(hp, return_index=True)[1]
-                new = ~hit[hp[first]]
-                hit[hp[first][new]] = True
-                loc[hp[first][new]] = pts[hq[first][new]]
-                start = stop
+    for pts, tree, centres, rc, todo in _open_queries(material, hit, xyz, axis, head_cores(nozzle, min_height)):
+        dist, near = tree.query(centres[todo], k=1, distance_upper_bound=rc)
+        found = np.isfinite(dist)
+        hit[todo[found]] = True
+        loc[todo[found]] = pts[near[found]]
+    for pts, tree, centres, rc, todo in _open_queries(material, hit, xyz, axis, head_parts(nozzle, min_height)):
+        counts = tree.query_ball_point(centres[todo], rc, return_length=True)
+        todo, counts = todo[counts > 0], counts[counts > 0]
+        # chunks of poses with a bounded number of candidate pairs
+        bounds = np.searchsorted(np.cumsum(counts), np.arange(budget, counts.sum() + budget, budget))
+        start = 0
+        for stop in np.unique(np.concatenate([bounds + 1, [len(todo)]])):
+            stop = int(min(max(stop, start + 1), len(todo)))
+            if stop <= start:
+                continue
+            ids = todo[start:stop]
+            lists = tree.query_ball_point(centres[ids], rc, return_sorted=False)
+            n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+            cand = np.fromiter(chain.from_iterable(lists), np.int64, int(n_c.sum()))
+            pose = np.repeat(ids, n_c)
+            inside = _inside_head(pts[cand] - xyz[pose], axis[pose], nozzle, min_height)
+            hp, hq = pose[inside], cand[inside]
+            first = np.unique(hp, return_index=True)[1]
+            new = ~hit[hp[first]]
+            hit[hp[first][new]] = True
+            loc[hp[first][new]] = pts[hq[first][new]]
+            start = stop
     return hit, loc
 
 
