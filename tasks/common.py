@@ -24,7 +24,7 @@ STEP_VERSIONS = {
     "stress_samples": "1",
     "field": "1",
     "field_blend": "1",
-    "layers": "3",
+    "layers": "4",
     "toolpaths": "1",
     "verify": "1",
     "export": "1",
