@@ -144,3 +144,81 @@ def test_non_identity_guess_is_pretrained(problem, kind):
 def test_device_auto():
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     assert resolve_device("cpu").type == "cpu"
+
+
+def _valley_config(collision: bool, max_steps: int = 0, **loss) -> NeuralConfig:
+    return NeuralConfig.model_validate({
+        "network": "small", "device": "cpu",
+        "optim": {"max_steps": max_steps, "convergence_window": 1000},
+        "loss": {"collision": collision, **loss},
+        "init": {"kind": "user", "pretrain_steps": 60, "pretrain_lr": 3e-3},
+    })
+
+
+@pytest.mark.parametrize("max_steps", [0, 4])
+def test_collision_constraint_is_enforced_to_zero_violating_pairs(problem, max_steps):
+    """A user field with a V-shaped valley (90 deg opening, cone apex 120 deg) violates L_CA = 0;
+    the DC3 correction leaves no violating adjacent pair, before every step and at the end."""
+    V = problem[0]
+    valley = V[:, 2] - np.abs(V[:, 0] - 5.0)
+    free = _run(problem, _valley_config(False, max_steps), user_field=valley)
+    before = free.attrs["collision"]
+    assert not before["enforced"] and before["violating_pairs"] > 0 and before["ca"] > 1e-3
+    res = _run(problem, _valley_config(True, max_steps), user_field=valley)
+    after = res.attrs["collision"]
+    assert after["enforced"] and after["violating_pairs"] == 0 and after["ca"] == 0.0
+    assert after["max_excess_rad"] <= 0 and res.final["ca"] == 0 and res.final["ca_violating_pairs"] == 0
+    if max_steps:
+        assert np.all(res.history["ca"] == 0) and res.history["corrections"][0] >= 1
+    else:
+        assert after["final_corrections"] >= 1
+    # the stored field itself is feasible: recompute the excess from G in float64
+    from neuralslicer.neural.field import CageGeometry
+    from neuralslicer.neural.losses import collision_excess
+
+    geo = CageGeometry.build(V, problem[1])
+    grad = np.einsum("ei,eij->ej", res.G[geo.tets], geo.bary_grads)
+    e = collision_excess(torch.tensor(grad), torch.tensor(geo.pairs), torch.tensor(geo.pair_normals),
+                         math.radians(120))
+    assert int((e > 0).sum()) == 0
+
+
+def test_target_loss_ends_the_run_and_the_best_iterate_is_returned(problem):
+    reached = _run(problem, _cfg(max_steps=30, target_loss=10.0))  # any loss meets it
+    assert reached.steps == 1 and reached.converged
+    full = _run(problem, _cfg(max_steps=30, target_loss=0.0))
+    assert full.steps == 30 and not full.converged
+    best = int(np.argmin(full.history["total"]))
+    assert full.attrs["best_step"] == best + 1
+    # the returned field is the best iterate (re-evaluated: same weights, same loss)
+    assert full.final["total"] == pytest.approx(full.history["total"][best], rel=1e-5)
+
+
+def test_a_diverging_step_is_rolled_back_to_the_best_iterate(problem):
+    cfg = _cfg(max_steps=25, lr=0.3, target_loss=0.0)  # far too large: steps blow up
+    res = _run(problem, cfg)
+    assert res.attrs["rollbacks"] >= 1
+    lr = res.history["lr"]
+    assert lr[-1] < 0.3 and np.all(np.diff(lr) <= 0)
+    assert res.final["total"] <= res.history["total"][0] * (1 + 1e-5)
+    off = _run(problem, _cfg(max_steps=25, lr=0.3, target_loss=0.0, divergence_factor=0.0,
+                             return_best=False, restart_from_best=False))
+    assert off.attrs["rollbacks"] == 0 and off.final["total"] > res.final["total"]
+
+
+def test_harmonic_pretraining_fits_the_guess_with_smoother_fields(problem):
+    V = problem[0]
+    user = V[:, 2] + 0.4 * (V[:, 0] - 5.0) + 0.5 * np.sin(V[:, 1])
+
+    def fit(weight: float):
+        cfg = NeuralConfig.model_validate({
+            "network": "small", "device": "cpu", "optim": {"max_steps": 0},
+            "loss": {"collision": False},
+            "init": {"kind": "user", "pretrain_steps": 80, "pretrain_lr": 3e-3, "pretrain_harmonic": weight},
+        })
+        return _run(problem, cfg, user_field=user)
+
+    plain, smooth = fit(0.0), fit(10.0)
+    assert smooth.final["hs"] + smooth.final["hq"] < 0.5 * (plain.final["hs"] + plain.final["hq"])
+    target = height_matched(user, V)
+    assert np.corrcoef(smooth.G, target)[0, 1] > 0.98

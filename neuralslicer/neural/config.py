@@ -65,7 +65,9 @@ class LossConfig(BaseModel):
     k_sr: float = Field(15.0, gt=0, description="logistic growth rate of L_SR")
     collision: bool = Field(True, description="enforce L_CA = 0 by a DC3-style correction")
     phi_deg: float = Field(120.0, gt=0, lt=180, description="printer-head cone apex angle phi")
-    correction_steps: int = Field(1, ge=0, description="max correction steps per iteration")
+    correction_steps: int = Field(
+        20, ge=0, description="max DC3 correction steps before one loss evaluation (stops when feasible)"
+    )
     correction_lr: float = Field(
         1.0, gt=0, description="fraction of the first-order step to L_CA = 0 (L_CA/|grad|^2 grad)"
     )
@@ -73,7 +75,18 @@ class LossConfig(BaseModel):
         0.05, gt=0, description="cap of one correction step, relative to the weight norm"
     )
     correction_tol: float = Field(
-        1e-5, ge=0, description="L_CA (mean excess angle per pair, rad) counted as feasible"
+        0.0, ge=0,
+        description="a pair violates L_CA = 0 when its excess angle theta - (pi - phi) exceeds this (rad); "
+        "feasible = no violating pair",
+    )
+    correction_margin: float = Field(
+        1e-3, ge=0,
+        description="the correction aims at excess <= -margin (rad) so that the next step and float64 "
+        "re-evaluation keep the pair feasible",
+    )
+    final_correction_steps: int = Field(
+        200, ge=0,
+        description="max correction steps on the final weights until no pair violates (checked in float64)",
     )
 
 
@@ -83,16 +96,48 @@ class OptimConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     lr: float = Field(1e-3, gt=0, description="initial Adam learning rate")
+    betas: tuple[float, float] = Field(
+        (0.9, 0.99),
+        description="Adam (beta1, beta2); beta2 = 0.99 adapts faster than torch's 0.999 where the "
+        "gradient scale changes by orders of magnitude (fewer loss spikes near the optimum)",
+    )
     min_lr: float = Field(1e-6, gt=0, description="ReduceLROnPlateau floor")
     plateau_factor: float = Field(0.5, gt=0, lt=1, description="ReduceLROnPlateau factor")
-    plateau_patience: int = Field(30, ge=1, description="ReduceLROnPlateau patience (steps)")
-    max_steps: int = Field(800, ge=0, description="step budget")
-    convergence_window: int = Field(100, ge=2, description="steps compared by the stop test")
+    plateau_patience: int = Field(100, ge=1, description="ReduceLROnPlateau patience (steps)")
+    trend_smoothing: float = Field(
+        0.05, gt=0, le=1,
+        description="weight of the newest step in the exponential moving average of log(loss) that the "
+        "plateau scheduler and the stall test see (1: the raw loss). Near the optimum the loss jitters "
+        "by tens of % from step to step (L_PO's kinks); on the raw loss both react to the jitter",
+    )
+    divergence_factor: float = Field(
+        3.0, ge=0,
+        description="a step whose loss exceeds this multiple of the best loss so far is undone: weights "
+        "and Adam state go back to the best iterate and the learning rate is halved (0: off)",
+    )
+    restart_from_best: bool = Field(
+        True,
+        description="when the plateau scheduler lowers the learning rate, go on from the best iterate "
+        "(weights and Adam state) rather than from wherever the last, noisier steps left the weights",
+    )
+    return_best: bool = Field(True, description="return the best iterate (lowest total loss), not the last")
+    max_steps: int = Field(3000, ge=0, description="step budget")
+    convergence_window: int = Field(200, ge=2, description="steps compared by the stop test")
     convergence_rtol: float = Field(
-        1e-3, ge=0, description="stop when the best loss improved less than this over the window"
+        1e-3, ge=0,
+        description="stop when the smoothed loss (its running minimum) improved less than this over the window",
     )
     convergence_atol: float = Field(
-        1e-5, ge=0, description="... or less than this in absolute terms (losses are unit-free)"
+        0.0, ge=0,
+        description="... or less than this in absolute terms (losses are unit-free; final losses reach "
+        "1e-7, so any fixed floor above that stops a run early)",
+    )
+    target_loss: float = Field(
+        1e-6, ge=0,
+        description="converged once the best total loss is at or below this (0: off). The ring's loss has "
+        "no floor within reach (it keeps falling, ~geometrically, by trading SF margin against "
+        "ever smaller harmonic terms), so a run stopped by the budget or a stall test ends wherever "
+        "its start left it; a target gives every start the same end point",
     )
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")
     seed: int = Field(0, description="seed of torch, numpy and python RNGs")
@@ -106,6 +151,11 @@ class InitConfig(BaseModel):
     kind: Literal["height", "heat", "user"] = Field("height", description="initial field")
     pretrain_steps: int = Field(300, ge=0, description="Adam steps fitting G to the field (MSE)")
     pretrain_lr: float = Field(1e-3, gt=0, description="learning rate of the pre-training")
+    pretrain_harmonic: float = Field(
+        10.0, ge=0,
+        description="pre-training minimises MSE + this * (w_hs L_HS + w_hq L_HQ): the guess is fitted "
+        "with smooth q, s instead of whatever rotations/scales fit G (0: plain MSE)",
+    )
     heat_time_factor: float = Field(1.0, gt=0, description="heat time t = factor * h^2")
 
 

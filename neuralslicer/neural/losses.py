@@ -90,17 +90,26 @@ def crease_concavity(
     return x, (nl * nr).sum(dim=1)
 
 
-def collision_loss(
+def collision_excess(
     gradients: torch.Tensor, pairs: torch.Tensor, face_normals: torch.Tensor, phi: float
 ) -> torch.Tensor:
-    """L_CA: mean over adjacent pairs of max(0, theta - (pi - phi)) in concave creases.
+    """Signed excess angle ``theta - (pi - phi)`` (rad) per adjacent pair; > 0 is a collision.
 
     ``theta = atan2((n_L x n_R).h, n_L.n_R)`` is the signed kink between the isosurface normals
     (positive in a valley). A cone of apex angle ``phi`` touches the bottom of a valley without
     gouging iff the valley's opening angle ``pi - theta`` is at least ``phi``.
     """
     if pairs.numel() == 0:
-        return gradients.new_zeros(())
+        return gradients.new_zeros((0,))
     x, c = crease_concavity(gradients, pairs, face_normals)
-    theta = torch.atan2(x, c)
-    return torch.relu(theta - (math.pi - phi)).mean()
+    return torch.atan2(x, c) - (math.pi - phi)
+
+
+def collision_loss(
+    gradients: torch.Tensor, pairs: torch.Tensor, face_normals: torch.Tensor, phi: float
+) -> torch.Tensor:
+    """L_CA: mean over adjacent pairs of max(0, theta - (pi - phi)) in concave creases
+    (see :func:`collision_excess`)."""
+    if pairs.numel() == 0:
+        return gradients.new_zeros(())
+    return torch.relu(collision_excess(gradients, pairs, face_normals, phi)).mean()

@@ -7,10 +7,12 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import math
 import random
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
@@ -164,6 +166,13 @@ class FieldProblem:
 
     def evaluate(self, fields: DeformationFields) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """(total weighted loss, every term incl. L_CA) for the current network weights."""
+        total, terms, _ = self.evaluate_with_excess(fields)
+        return total, terms
+
+    def evaluate_with_excess(
+        self, fields: DeformationFields
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None]:
+        """(total, terms, per-pair collision excess angle (None when the collision term is off))."""
         cl = self.config.loss
         G, q, s = self.height(fields)
         grad = field_gradient(G, self.tets_t, self.bary_grads_t)
@@ -182,11 +191,36 @@ class FieldProblem:
                        if cl.w_po > 0 and self.b_knn_t.numel() else zero)
         terms["hs"] = L.harmonic_scale_loss(s, self.pairs_t, self.pair_weights_t) if cl.w_hs > 0 else zero
         terms["hq"] = L.harmonic_quaternion_loss(q, self.pairs_t, self.pair_weights_t) if cl.w_hq > 0 else zero
-        terms["ca"] = (L.collision_loss(grad, self.pairs_t, self.pair_normals_t, math.radians(cl.phi_deg))
-                       if cl.collision else zero)
+        excess = None
+        if cl.collision:
+            excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, math.radians(cl.phi_deg))
+            terms["ca"] = torch.relu(excess).mean() if excess.numel() else zero
+        else:
+            terms["ca"] = zero
         total = (cl.w_sf * terms["sf"] + cl.w_sr * terms["sr"] + cl.w_po * terms["po"]
                  + cl.w_hs * terms["hs"] + cl.w_hq * terms["hq"])
-        return total, terms
+        return total, terms, excess
+
+    def collision_excess(self, fields: DeformationFields) -> torch.Tensor:
+        """Per-pair collision excess angle (rad, > 0 violates) in the working dtype, with its graph."""
+        G, _, _ = self.height(fields)
+        grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+        return L.collision_excess(grad, self.pairs_t, self.pair_normals_t, math.radians(self.config.loss.phi_deg))
+
+    def collision_excess64(self, fields: DeformationFields) -> np.ndarray:
+        """Per-pair collision excess angle of the field the result stores (float64 deformation)."""
+        with torch.no_grad():
+            q, s = fields(self.centroids_t)
+            G = self.arap.deformed_height(q.double(), s.double()).cpu().numpy()
+        return self.excess_of(G)
+
+    def excess_of(self, G: np.ndarray) -> np.ndarray:
+        """Per-pair collision excess angle (rad, float64) of a field G (n,) at the cage vertices."""
+        g = self.geometry
+        grad = np.einsum("ei,eij->ej", np.asarray(G, dtype=np.float64)[g.tets], g.bary_grads)
+        e = L.collision_excess(torch.from_numpy(grad), torch.from_numpy(g.pairs),
+                               torch.from_numpy(g.pair_normals), math.radians(self.config.loss.phi_deg))
+        return e.numpy()
 
     def planar_lpd_satisfaction(self) -> dict[str, float]:
         """SF/SR satisfaction of planar layers (d = +z)."""
@@ -208,20 +242,21 @@ class FieldProblem:
         return out
 
 
-def correction_step(fields: DeformationFields, ca: torch.Tensor, config) -> bool:
-    """One DC3-style correction of the weights towards L_CA = 0 (in place); False if no step.
+def correction_step(fields: DeformationFields, violation: torch.Tensor, config) -> bool:
+    """One DC3-style correction of the weights towards the feasible set (in place); False if no step.
 
-    The step is the first-order (Polyak / Gauss-Newton) step for the scalar constraint,
-    ``theta -= lr * L_CA / |grad L_CA|^2 * grad L_CA``, its length capped at
+    ``violation`` is ``mean(relu(excess + margin))`` over the adjacent pairs (zero iff every pair
+    is at least ``margin`` inside the constraint). The step is the first-order (Polyak /
+    Gauss-Newton) step to its zero, ``theta -= lr * v / |grad v|^2 * grad v``, its length capped at
     ``max_step * |theta|`` so that a nearly flat constraint cannot throw the weights away.
     """
     params = [p for p in fields.parameters() if p.requires_grad]
-    grads = torch.autograd.grad(ca, params, allow_unused=True)
+    grads = torch.autograd.grad(violation, params, allow_unused=True)
     norm2 = sum(float((g * g).sum()) for g in grads if g is not None)
-    if norm2 <= 0:
+    if norm2 <= 0 or not math.isfinite(norm2):
         return False
     theta = math.sqrt(sum(float((p.detach() * p.detach()).sum()) for p in params))
-    eta = config.correction_lr * float(ca.detach()) / norm2
+    eta = config.correction_lr * float(violation.detach()) / norm2
     eta = min(eta, config.correction_max_step * theta / math.sqrt(norm2))
     with torch.no_grad():
         for p, g in zip(params, grads):
@@ -230,24 +265,52 @@ def correction_step(fields: DeformationFields, ca: torch.Tensor, config) -> bool
     return True
 
 
+def violating_pairs(excess: torch.Tensor | np.ndarray | None, tol: float) -> int:
+    """Number of adjacent pairs whose excess angle is above tol (0 when the term is off)."""
+    if excess is None:
+        return 0
+    if isinstance(excess, torch.Tensor):
+        return int((excess.detach() > tol).sum())
+    return int(np.count_nonzero(excess > tol))
+
+
 def corrected_evaluation(
     problem: FieldProblem, fields: DeformationFields
-) -> tuple[torch.Tensor, dict[str, torch.Tensor], int]:
-    """Evaluate the losses after up to ``correction_steps`` DC3 corrections (while L_CA > tol).
+) -> tuple[torch.Tensor, dict[str, torch.Tensor], int, int]:
+    """Evaluate the losses after DC3 corrections: while a pair violates L_CA = 0 (excess above
+    ``correction_tol``), at most ``correction_steps`` times, one correction step.
 
-    Returns (total, terms, corrections made); the terms are those of the corrected weights, so
-    a feasible iterate costs one evaluation and each correction one backward + one evaluation.
+    Returns (total, terms, corrections made, pairs still violating); the terms are those of the
+    corrected weights, so a feasible iterate costs one evaluation and each correction one
+    backward + one evaluation.
     """
     cl = problem.config.loss
-    total, terms = problem.evaluate(fields)
+    total, terms, excess = problem.evaluate_with_excess(fields)
     done = 0
-    while (cl.collision and done < cl.correction_steps
-           and float(terms["ca"].detach()) > cl.correction_tol):
-        if not correction_step(fields, terms["ca"], cl):
+    while (excess is not None and done < cl.correction_steps
+           and violating_pairs(excess, cl.correction_tol) > 0):
+        if not correction_step(fields, torch.relu(excess + cl.correction_margin).mean(), cl):
             break
         done += 1
-        total, terms = problem.evaluate(fields)
-    return total, terms, done
+        total, terms, excess = problem.evaluate_with_excess(fields)
+    return total, terms, done, violating_pairs(excess, cl.correction_tol)
+
+
+def enforce_collision_constraint(problem: FieldProblem, fields: DeformationFields) -> tuple[int, np.ndarray]:
+    """Correct the final weights until no pair violates L_CA = 0 in the float64 field the result
+    stores (at most ``final_correction_steps`` steps); returns (steps made, float64 excess per pair)."""
+    cl = problem.config.loss
+    excess64 = problem.collision_excess64(fields)
+    done = 0
+    while done < cl.final_correction_steps and violating_pairs(excess64, cl.correction_tol) > 0:
+        target = torch.relu(problem.collision_excess(fields) + cl.correction_margin).mean()
+        # float32 and float64 excesses differ by ~1e-6 rad, far less than the margin: a zero
+        # target here would mean no direction is left to correct along; the result reports it
+        if float(target.detach()) <= 0 or not correction_step(fields, target, cl):
+            break
+        done += 1
+        excess64 = problem.collision_excess64(fields)
+    return done, excess64
 
 
 def initial_target(problem: FieldProblem, user_values: np.ndarray | None,
@@ -276,26 +339,68 @@ def pretrain(
     target: np.ndarray,
     progress: ProgressFn | None = None,
 ) -> np.ndarray:
-    """Fit G to target (n,) by Adam on the MSE (normalised by the z range^2); returns MSE history.
+    """Fit G to target (n,) by Adam; returns the MSE (normalised by the z range^2) per step.
 
-    ``progress(0, {"phase": "pretrain", "pretrain_step", "pretrain_steps", "mse"})`` per step.
+    The objective is the MSE plus ``pretrain_harmonic * (w_hs L_HS + w_hq L_HQ)``: many rotation and
+    scale fields give the same G, and a plain MSE fit picks rough ones (large L_HS) that the
+    optimisation afterwards has to smooth out slowly; with the harmonic terms the guess starts
+    as smooth as it can be. ``progress(0, {"phase": "pretrain", "pretrain_step", "pretrain_steps",
+    "mse"})`` per step.
     """
-    init = problem.config.init
+    init, cl = problem.config.init, problem.config.loss
     tgt = torch.as_tensor(target, dtype=problem.dtype, device=problem.device)
     scale = float(np.ptp(problem.geometry.vertices[:, 2])) ** 2
     opt = torch.optim.Adam(fields.parameters(), lr=init.pretrain_lr)
+    wh = init.pretrain_harmonic
     hist = []
     for _ in range(init.pretrain_steps):
-        G, _, _ = problem.height(fields)
+        G, q, s = problem.height(fields)
         mse = ((G - tgt) ** 2).mean() / scale
+        loss = mse
+        if wh > 0:
+            if cl.w_hs > 0:
+                loss = loss + wh * cl.w_hs * L.harmonic_scale_loss(s, problem.pairs_t, problem.pair_weights_t)
+            if cl.w_hq > 0:
+                loss = loss + wh * cl.w_hq * L.harmonic_quaternion_loss(q, problem.pairs_t, problem.pair_weights_t)
         opt.zero_grad()
-        mse.backward()
+        loss.backward()
         opt.step()
         hist.append(float(mse.detach()))
         if progress is not None:
             progress(0, {"phase": "pretrain", "pretrain_step": len(hist),
                          "pretrain_steps": init.pretrain_steps, "mse": hist[-1]})
     return np.asarray(hist)
+
+
+def _clone_state(state: dict) -> dict:
+    """A deep copy of a (network or optimiser) state dict, tensors cloned."""
+    return copy.deepcopy(state)
+
+
+def _restore(fields: DeformationFields, optimizer: torch.optim.Optimizer, state: dict, lr: float) -> None:
+    """Weights and Adam state of a saved iterate, with the learning rate set to lr."""
+    fields.load_state_dict(state["fields"])
+    # a copy: Adam updates its moments in place and would alter the saved state
+    optimizer.load_state_dict(_clone_state(state["optimizer"]))
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
+def _smooth(previous: float | None, value: float, weight: float, skip: bool = False) -> float:
+    """Next smoothed loss: exp of the exponential moving average of log(loss); unchanged on skip."""
+    if previous is None:
+        return value
+    if skip or not (value > 0 and math.isfinite(value)) or previous <= 0:
+        return previous
+    return math.exp(math.log(previous) + weight * (math.log(value) - math.log(previous)))
+
+
+def _trend_of(totals: list[float], weight: float) -> list[float]:
+    """Smoothed losses of a history (for checkpoints written without them)."""
+    out: list[float] = []
+    for v in totals:
+        out.append(_smooth(out[-1] if out else None, v, weight))
+    return out
 
 
 def _rng_state() -> dict:
@@ -403,14 +508,24 @@ def _optimise_field(
     oc = config.optim
     seed_everything(oc.seed)
     fields = problem.new_fields()
-    optimizer = torch.optim.Adam(fields.parameters(), lr=oc.lr)
-    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
-        optimizer, mode="min", factor=oc.plateau_factor, patience=oc.plateau_patience, min_lr=oc.min_lr
-    )
+
+    def new_optimizer() -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.ReduceLROnPlateau]:
+        """Fresh Adam (no moments) and plateau scheduler."""
+        opt = torch.optim.Adam(fields.parameters(), lr=oc.lr, betas=tuple(oc.betas))
+        return opt, torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=oc.plateau_factor, patience=oc.plateau_patience, min_lr=oc.min_lr
+        )
+
+    optimizer, scheduler = new_optimizer()
+    # the best iterate: loss, weights and Adam state (a diverging step goes back to it)
+    best_state: dict | None = None
+    rollbacks = 0
+    trend: list[float] = []
     history: dict[str, list[float]] = {k: [] for k in ("total", *TERMS, "corrections", "lr")}
     pretrain_hist = np.zeros(0)
     step = 0
     converged = False
+    final_corrections = 0  # DC3 steps on the final weights (kept in the last checkpoint)
     blob = load_checkpoint() if load_checkpoint is not None else None
     if blob:
         state = torch.load(io.BytesIO(blob), map_location=problem.device, weights_only=False)
@@ -418,6 +533,9 @@ def _optimise_field(
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         step, converged = int(state["step"]), bool(state["converged"])
+        final_corrections = int(state.get("final_corrections", 0))
+        best_state, rollbacks = state.get("best"), int(state.get("rollbacks", 0))
+        trend = list(state.get("trend", []))
         history = {k: list(v) for k, v in state["history"].items()}
         pretrain_hist = np.asarray(state["pretrain_history"])
         _set_rng_state(state["rng"])
@@ -425,11 +543,7 @@ def _optimise_field(
         target = initial_target(problem, user_field, user_field_points)
         if target is not None:
             pretrain_hist = pretrain(problem, fields, target, progress)
-            optimizer = torch.optim.Adam(fields.parameters(), lr=oc.lr)
-            scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
-                optimizer, mode="min", factor=oc.plateau_factor, patience=oc.plateau_patience,
-                min_lr=oc.min_lr,
-            )
+            optimizer, scheduler = new_optimizer()  # no moments carried over from the fit
 
     def checkpoint() -> None:
         """Serialise the complete state and hand it to save_checkpoint."""
@@ -440,6 +554,8 @@ def _optimise_field(
             "version": CHECKPOINT_VERSION, "fields": fields.state_dict(),
             "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
             "step": step, "converged": converged, "history": history,
+            "final_corrections": final_corrections, "best": best_state, "rollbacks": rollbacks,
+            "trend": trend,
             "pretrain_history": pretrain_hist, "rng": _rng_state(), "seed": oc.seed,
             "config": config.model_dump(mode="json"),
         }, buf)
@@ -448,13 +564,34 @@ def _optimise_field(
     best: list[float] = []
     for v in history["total"]:
         best.append(min(best[-1], v) if best else v)
+    # running minimum of the smoothed loss exp(EMA(log L)) per step: what the scheduler and the
+    # stall test see (roll-back steps leave it unchanged)
+    if not trend:
+        trend = _trend_of(history["total"], oc.trend_smoothing) if history["total"] else []
     while step < oc.max_steps and not converged:
-        total, terms, n_corr = corrected_evaluation(problem, fields)
-        optimizer.zero_grad()
-        total.backward()
-        optimizer.step()
+        total, terms, n_corr, n_viol = corrected_evaluation(problem, fields)
         tv = float(total.detach())
-        scheduler.step(tv)
+        lr = optimizer.param_groups[0]["lr"]
+        diverged = (oc.divergence_factor > 0 and best_state is not None
+                    and not tv <= oc.divergence_factor * best_state["loss"])
+        if diverged:
+            # undo: back to the best iterate with its Adam moments, at a lower learning rate
+            _restore(fields, optimizer, best_state, max(lr * oc.plateau_factor, oc.min_lr))
+            rollbacks += 1
+        else:
+            if best_state is None or tv < best_state["loss"]:
+                best_state = {"loss": tv, "step": step, "fields": _clone_state(fields.state_dict()),
+                              "optimizer": _clone_state(optimizer.state_dict())}
+            optimizer.zero_grad()
+            total.backward()
+            optimizer.step()
+        smoothed = _smooth(trend[-1] if trend else None, tv, oc.trend_smoothing, diverged)
+        trend.append(smoothed)
+        if not diverged:
+            scheduler.step(smoothed)
+            new_lr = optimizer.param_groups[0]["lr"]
+            if oc.restart_from_best and new_lr < lr and best_state is not None:
+                _restore(fields, optimizer, best_state, new_lr)
         step += 1
         history["total"].append(tv)
         for k in TERMS:
@@ -463,18 +600,28 @@ def _optimise_field(
         history["lr"].append(optimizer.param_groups[0]["lr"])
         best.append(min(best[-1], tv) if best else tv)
         w = oc.convergence_window
-        if len(best) > w:
-            old = best[-1 - w]
-            converged = (old - best[-1]) <= oc.convergence_rtol * abs(old) + oc.convergence_atol
-        if optimizer.param_groups[0]["lr"] <= oc.min_lr * (1 + 1e-9) and len(best) > w:
-            converged = converged or (best[-1 - w] - best[-1]) <= 1e-9 * abs(best[-1 - w])
+        if len(trend) > w:
+            old, new = min(trend[:-w]), min(trend)
+            converged = (old - new) <= oc.convergence_rtol * abs(old) + oc.convergence_atol
+            if optimizer.param_groups[0]["lr"] <= oc.min_lr * (1 + 1e-9):
+                converged = converged or (old - new) <= 1e-9 * abs(old)
+        if oc.target_loss > 0 and best[-1] <= oc.target_loss:
+            converged = True
         if progress is not None:
             info = {k: history[k][-1] for k in history}
             info["elapsed_s"] = time.perf_counter() - t0
             info["phase"] = "optimise"
+            info["ca_violating_pairs"] = n_viol
+            info["best"] = best[-1]
+            info["rollbacks"] = rollbacks
             progress(step, info)
         if step % oc.checkpoint_every == 0 and step < oc.max_steps and not converged:
             checkpoint()
+    if oc.return_best and best_state is not None:
+        fields.load_state_dict(best_state["fields"])
+    if config.loss.collision:
+        # the hard constraint holds for the field that is returned, not only before each step
+        final_corrections += enforce_collision_constraint(problem, fields)[0]
     checkpoint()
 
     with torch.no_grad():
@@ -482,12 +629,28 @@ def _optimise_field(
         V = problem.arap.deform(q.double(), s.double()).cpu().numpy()
         G = V[:, 2].copy()
         total, terms = problem.evaluate(fields)
+    excess64 = problem.excess_of(G)
+    n_viol = violating_pairs(excess64, config.loss.correction_tol)
+    collision = {
+        "enforced": bool(config.loss.collision), "phi_deg": config.loss.phi_deg,
+        "ca": float(np.maximum(excess64, 0).mean()) if len(excess64) else 0.0,
+        "violating_pairs": n_viol, "n_pairs": int(len(excess64)),
+        "max_excess_rad": float(excess64.max()) if len(excess64) else 0.0,
+        "tol_rad": config.loss.correction_tol, "margin_rad": config.loss.correction_margin,
+        "final_corrections": final_corrections,
+    }
+    if n_viol and config.loss.collision:
+        warnings.warn(f"L_CA = 0 not reached: {n_viol} adjacent pairs still violate "
+                      f"(max excess {collision['max_excess_rad']:.2e} rad)", RuntimeWarning, stacklevel=2)
     gradG = np.einsum("ei,eij->ej", G[problem.geometry.tets], problem.geometry.bary_grads)
     lpd = gradG / np.maximum(np.linalg.norm(gradG, axis=1, keepdims=True), 1e-300)
     sat = {k: v for k, v in problem.satisfaction(lpd).items()}
     sat.update({f"planar_{k}": v for k, v in problem.planar_lpd_satisfaction().items()})
     final = {k: float(v) for k, v in terms.items()}
     final["total"] = float(total)
+    if config.loss.collision:  # the constraint as stored: the float64 field, pairs counted
+        final["ca"] = collision["ca"]
+        final["ca_violating_pairs"] = float(n_viol)
     return FieldResult(
         deformed_vertices=V, G=G, lpd=lpd, quaternions=q.double().cpu().numpy(),
         scales=s.double().cpu().numpy(),
@@ -496,5 +659,6 @@ def _optimise_field(
         wall_time_s=time.perf_counter() - t0, satisfaction=sat, pretrain_history=pretrain_hist,
         attrs={"config": config.model_dump(mode="json"), "seed": oc.seed,
                "solver_backend": problem.arap.backend, "device": str(problem.device),
-               "po_length": problem.po_length, "schema_version": 1},
+               "po_length": problem.po_length, "schema_version": 1, "collision": collision,
+               "rollbacks": rollbacks, "best_step": None if best_state is None else int(best_state["step"]) + 1},
     )

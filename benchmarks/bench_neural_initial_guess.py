@@ -1,0 +1,125 @@
+"""Robustness to the initial guess (paper Sec. 6.1.5) on the ring: final loss per term for the
+height, heat and user starts, the same inputs as `neuralslicer study initial-guess`.
+
+    python benchmarks/bench_neural_initial_guess.py                 # default settings (20k samples, 10k cage)
+    python benchmarks/bench_neural_initial_guess.py --reduced       # the study's 4k samples, 6k cage
+    python benchmarks/bench_neural_initial_guess.py --old           # the optimiser settings before issue #4
+    python benchmarks/bench_neural_initial_guess.py --set optim.max_steps=120 --set init.pretrain_steps=100
+
+Objectives sf, po (the ring's default; the collision term off, as `--objectives sf,po` does).
+Prints one line per start and the spread max/min - 1 of the final totals; merges the rows into
+benchmarks/results/bench_neural.json under ``initial_guess[_reduced][_old]``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from neuralslicer.neural import NeuralConfig, optimise_field  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results" / "bench_neural.json"
+#: the optimiser as it was before issue #4 (the DC3 correction is not emulated: collision is off here)
+OLD = {"optim": {"betas": [0.9, 0.999], "plateau_patience": 30, "divergence_factor": 0, "return_best": False,
+                 "restart_from_best": False, "max_steps": 800, "convergence_window": 100,
+                 "convergence_atol": 1e-5, "target_loss": 0},
+       "init": {"pretrain_harmonic": 0}}
+
+
+def ring_inputs(reduced: bool) -> dict[str, np.ndarray]:
+    """Samples B, cage and the study's default user field for the ring (y-up), as the pipeline makes them."""
+    from flows.branch import load_branch_spec, make_user_field
+    from neuralslicer.cage import build_cage, interior_points
+    from neuralslicer.config import SliceConfig
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.samples import surface_samples
+
+    ring = ROOT.parent / "shared" / "data" / "ring.tet"
+    ring = ring if ring.exists() else Path("/work/shared/data/ring.tet")
+    solid = implicit_solid(load_branch_spec(str(ring), "y"))
+    cfg = SliceConfig()
+    if reduced:
+        cfg.samples.n_samples, cfg.cage.n_elements = 4000, 6000
+    B = surface_samples(solid, cfg.samples.n_samples, k=cfg.samples.k, seed=cfg.samples.seed)
+    check = np.concatenate([B.points, interior_points(solid.H, solid.bounds, 20_000, cfg.cage.seed)])
+    cage = build_cage(solid.H, solid.bounds, solid.volume(), cfg.cage, check)
+    path = Path(make_user_field(solid.bounds, Path("/tmp") / "neuralslicer_ring_user_field.npz"))
+    with np.load(path) as uf:
+        up, uv = uf["points"], uf["values"]
+    return {"V": cage.vertices, "T": cage.tets, "P": B.points, "N": B.normals, "A": B.areas, "K": B.knn,
+            "F": B.on_platform, "pz": np.float64(solid.platform_z), "up": up, "uv": uv}
+
+
+def _deep(a: dict, b: dict) -> dict:
+    """a updated recursively with b."""
+    for k, v in b.items():
+        a[k] = _deep(dict(a.get(k, {})), v) if isinstance(v, dict) else v
+    return a
+
+
+def _parse_set(items: list[str]) -> dict:
+    """--set a.b=value (value as JSON when it parses) -> nested dict."""
+    out: dict = {}
+    for item in items:
+        key, value = item.split("=", 1)
+        try:
+            val = json.loads(value)
+        except json.JSONDecodeError:
+            val = value
+        node = out
+        *parents, leaf = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = val
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line entry point."""
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--reduced", action="store_true", help="4k samples, 6k cage elements (the study's budget)")
+    p.add_argument("--old", action="store_true", help="the optimiser settings before issue #4")
+    p.add_argument("--kinds", default="height,heat,user")
+    p.add_argument("--set", action="append", default=[], help="config override, e.g. optim.max_steps=120")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: stable timings on a shared machine)")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    d = ring_inputs(a.reduced)
+    base = {"device": "cpu", "loss": {"w_sr": 0.0, "collision": False}}
+    if a.old:
+        base = _deep(base, OLD)
+    base = _deep(base, _parse_set(a.set))
+    rows = []
+    for kind in a.kinds.split(","):
+        cfg = NeuralConfig.model_validate(_deep(json.loads(json.dumps(base)), {"init": {"kind": kind}}))
+        t0 = time.perf_counter()
+        r = optimise_field(d["V"], d["T"], d["P"], d["N"], d["A"], d["K"], d["F"], config=cfg,
+                           platform_z=float(d["pz"]), user_field=d["uv"] if kind == "user" else None,
+                           user_field_points=d["up"] if kind == "user" else None)
+        row = {"init": kind, "tets": int(len(d["T"])), "samples": int(len(d["P"])), "steps": r.steps,
+               "converged": r.converged, "wall_s": time.perf_counter() - t0, "final": r.final,
+               "overhang": r.satisfaction["overhang_area_fraction"], "rollbacks": r.attrs.get("rollbacks"),
+               "pretrain_final_mse": float(r.pretrain_history[-1]) if len(r.pretrain_history) else None}
+        rows.append(row)
+        f = r.final
+        print(f"{kind:>6}: {row['tets']} tets, {r.steps} steps ({'converged' if r.converged else 'budget'}), "
+              f"{row['wall_s']:.0f} s, total {f['total']:.3e} = sf {f['sf']:.2e} + po {f['po']:.2e} + "
+              f"hs {f['hs']:.2e} + hq {f['hq']:.2e}; overhang {100 * row['overhang']:.3f} %", flush=True)
+    totals = [r["final"]["total"] for r in rows]
+    print(f"spread of the final totals (max/min - 1): {100 * (max(totals) / min(totals) - 1):.1f} %")
+    key = "initial_guess" + ("_reduced" if a.reduced else "") + ("_old" if a.old else "")
+    results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    results[key] = {"rows": rows, "overrides": base, "threads": a.threads}
+    RESULTS.write_text(json.dumps(results, indent=2, default=float))
+
+
+if __name__ == "__main__":
+    main()
