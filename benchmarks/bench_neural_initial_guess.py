@@ -58,6 +58,54 @@ def ring_inputs(reduced: bool) -> dict[str, np.ndarray]:
             "F": B.on_platform, "pz": np.float64(solid.platform_z), "up": up, "uv": uv}
 
 
+def field_agreement(d: dict[str, np.ndarray], results: dict) -> dict[str, dict[str, float]]:
+    """How alike the fields of each pair of starts are: the angle between their LPDs at the samples B
+    (area-weighted median and 95th percentile) and the rank correlation of G at B (the print order)."""
+    from scipy.stats import spearmanr
+
+    from neuralslicer.tetmesh import TetLocator
+
+    tet, bary = TetLocator(d["V"], d["T"]).locate(d["P"], tol=1e-7)
+    ok = tet >= 0
+    w = d["A"][ok] / d["A"][ok].sum()
+    out = {}
+    kinds = list(results)
+    for i, a in enumerate(kinds):
+        for b in kinds[i + 1:]:
+            la, lb = results[a].lpd[tet[ok]], results[b].lpd[tet[ok]]
+            ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", la, lb), -1.0, 1.0)))
+            order = np.argsort(ang)
+            cw = np.cumsum(w[order])
+            ga = np.einsum("ni,ni->n", bary[ok], results[a].G[d["T"][tet[ok]]])
+            gb = np.einsum("ni,ni->n", bary[ok], results[b].G[d["T"][tet[ok]]])
+            out[f"{a}-{b}"] = {"lpd_angle_deg_median": float(ang[order][np.searchsorted(cw, 0.5)]),
+                               "lpd_angle_deg_p95": float(ang[order][min(np.searchsorted(cw, 0.95), len(ang) - 1)]),
+                               "spearman_G": float(spearmanr(ga, gb).statistic)}
+    return out
+
+
+def plot_learning_curves(results: dict, path: Path) -> None:
+    """Total loss per step of every start, log scale, with the target loss (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for kind, r in results.items():
+        ax.semilogy(np.arange(1, len(r.history["total"]) + 1), r.history["total"], label=kind, lw=1)
+    target = next(iter(results.values())).attrs["config"]["optim"]["target_loss"]
+    if target > 0:
+        ax.axhline(target, color="k", ls="--", lw=0.8, label="target loss")
+    ax.set_xlabel("step")
+    ax.set_ylabel("total loss")
+    ax.set_title("ring: learning curves from three initial guesses")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _deep(a: dict, b: dict) -> dict:
     """a updated recursively with b."""
     for k, v in b.items():
@@ -89,6 +137,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--old", action="store_true", help="the optimiser settings before issue #4")
     p.add_argument("--kinds", default="height,heat,user")
     p.add_argument("--set", action="append", default=[], help="config override, e.g. optim.max_steps=120")
+    p.add_argument("--results", type=Path, default=RESULTS, help="JSON file the rows are merged into")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: stable timings on a shared machine)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -98,6 +147,7 @@ def main(argv: list[str] | None = None) -> None:
         base = _deep(base, OLD)
     base = _deep(base, _parse_set(a.set))
     rows = []
+    results_by_kind = {}
     for kind in a.kinds.split(","):
         cfg = NeuralConfig.model_validate(_deep(json.loads(json.dumps(base)), {"init": {"kind": kind}}))
         t0 = time.perf_counter()
@@ -107,18 +157,25 @@ def main(argv: list[str] | None = None) -> None:
         row = {"init": kind, "tets": int(len(d["T"])), "samples": int(len(d["P"])), "steps": r.steps,
                "converged": r.converged, "wall_s": time.perf_counter() - t0, "final": r.final,
                "overhang": r.satisfaction["overhang_area_fraction"], "rollbacks": r.attrs.get("rollbacks"),
-               "pretrain_final_mse": float(r.pretrain_history[-1]) if len(r.pretrain_history) else None}
+               "pretrain_final_mse": float(r.pretrain_history[-1]) if len(r.pretrain_history) else None,
+               "history_total_every_10": [float(v) for v in r.history["total"][::10]]}
         rows.append(row)
+        results_by_kind[kind] = r
         f = r.final
         print(f"{kind:>6}: {row['tets']} tets, {r.steps} steps ({'converged' if r.converged else 'budget'}), "
               f"{row['wall_s']:.0f} s, total {f['total']:.3e} = sf {f['sf']:.2e} + po {f['po']:.2e} + "
               f"hs {f['hs']:.2e} + hq {f['hq']:.2e}; overhang {100 * row['overhang']:.3f} %", flush=True)
     totals = [r["final"]["total"] for r in rows]
     print(f"spread of the final totals (max/min - 1): {100 * (max(totals) / min(totals) - 1):.1f} %")
+    agreement = field_agreement(d, results_by_kind)
+    for pair, ag in agreement.items():
+        print(f"{pair}: LPD angle at B median {ag['lpd_angle_deg_median']:.2f} deg, 95 % {ag['lpd_angle_deg_p95']:.2f} deg; "
+              f"layer order: Spearman {ag['spearman_G']:.4f}")
     key = "initial_guess" + ("_reduced" if a.reduced else "") + ("_old" if a.old else "")
-    results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    results[key] = {"rows": rows, "overrides": base, "threads": a.threads}
-    RESULTS.write_text(json.dumps(results, indent=2, default=float))
+    plot_learning_curves(results_by_kind, a.results.parent / f"bench_neural_{key}.png")
+    results = json.loads(a.results.read_text()) if a.results.exists() else {}
+    results[key] = {"rows": rows, "agreement": agreement, "overrides": base, "threads": a.threads}
+    a.results.write_text(json.dumps(results, indent=2, default=float))
 
 
 if __name__ == "__main__":

@@ -58,21 +58,28 @@ def smoother(config: NeuralConfig, factor: float) -> NeuralConfig:
     return config.model_copy(update={"loss": loss})
 
 
+def n_collisions(printing: ArtifactRef) -> int:
+    """Colliding waypoints of a stored print."""
+    return int(ArtifactStore(printing.store).attrs(printing.path)["metrics"].get("n_collisions", 0))
+
+
 def blend_until_collision_free(
     log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef, config: SliceConfig,
-    machine: MachineProfile,
+    machine: MachineProfile, attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
 ) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
     """The smallest blend t of the field toward planar layers ((1-t) G + t z) whose print is collision-free.
 
     Bisection on t in (0, 1] for `collision_blend_steps` steps; planar layers (t = 1) print bottom-up with a
-    vertical nozzle, so they are collision-free and end the search when no smaller t is.
+    vertical nozzle, so they are collision-free and end the search when no smaller t is. Every blend tried is
+    appended to `attempts` as (label, field, print).
     """
     logger = get_run_logger()
     lo, hi, best = 0.0, 1.0, None
     for _ in range(config.collision_blend_steps):
         t = 0.5 * (lo + hi)
         result = _blended_print(log, store, model, cage, field_ref, config, machine, t)
-        n = ArtifactStore(store).attrs(result[2].path)["metrics"].get("n_collisions", 0)
+        n = n_collisions(result[2])
+        attempts.append((f"planar blend t = {t:.4g}", result[0], result[2]))
         logger.warning("planar blend %.3g: %d nozzle collisions", t, n)
         if n == 0:
             hi, best = t, result
@@ -80,8 +87,8 @@ def blend_until_collision_free(
             lo = t
     if best is None:
         best = _blended_print(log, store, model, cage, field_ref, config, machine, 1.0)
-        n = ArtifactStore(store).attrs(best[2].path)["metrics"].get("n_collisions", 0)
-        logger.warning("planar layers: %d nozzle collisions", n)
+        attempts.append(("planar blend t = 1 (planar layers)", best[0], best[2]))
+        logger.warning("planar layers: %d nozzle collisions", n_collisions(best[2]))
     return best
 
 
@@ -134,6 +141,8 @@ def slice_pipeline(
     user = store_user_field(store, name, user_field) if user_field else None
     machine = load_profile(config.machine)
     neural = config.neural
+    # every field printed on the way to a collision-free program: (label, field, print)
+    attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
     for attempt in range(config.collision_retries + 1):
         field_ref = log.run(
             optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
@@ -143,7 +152,9 @@ def slice_pipeline(
         printing = log.run(
             plan_print_task, store=store, model=model, layers=layers, config=config.toolpath, machine=machine
         )
-        collisions = ArtifactStore(store).attrs(printing.path)["metrics"].get("n_collisions", 0)
+        factor = config.collision_smoothness_factor ** attempt
+        attempts.append(("optimised" if attempt == 0 else f"re-optimised, harmonic x{factor:g} + CA", field_ref, printing))
+        collisions = n_collisions(printing)
         if collisions == 0 or not objectives or attempt == config.collision_retries:
             break
         # the paper's fallback: smoother fields (larger harmonic weights) and the local collision term, then again
@@ -152,7 +163,8 @@ def slice_pipeline(
         get_run_logger().warning("%d nozzle collisions: re-optimising with harmonic weights x%g", collisions,
                                  config.collision_smoothness_factor)
     if collisions and objectives and config.collision_fallback == "blend":
-        field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine)
+        field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine,
+                                                                 attempts)
     if config.verify:
         verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
     log.run(
@@ -160,6 +172,7 @@ def slice_pipeline(
         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,
         alpha_deg=config.alpha_deg,
         beta_deg=config.neural.loss.beta_deg,
+        attempts=attempts if len(attempts) > 1 else [],
     )
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
                         extra={**(provenance_extra or {}), "store": store})

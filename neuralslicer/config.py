@@ -43,7 +43,8 @@ class SliceConfig(BaseModel):
     collision_fallback: Literal["blend", "none"] = Field(
         "blend", description="still colliding after the retries: blend the field toward planar layers "
         "((1-t) G + t z, the smallest t found by bisection that is collision-free; t = 1 is planar) or keep it")
-    collision_blend_steps: int = Field(3, ge=1, le=8, description="bisection steps of the planar blend")
+    collision_blend_steps: int = Field(
+        5, ge=1, le=8, description="bisection steps of the planar blend (t to within 2^-steps)")
     verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
 
     @classmethod

@@ -27,7 +27,7 @@ STEP_VERSIONS = {
     "layers": "4",
     "toolpaths": "1",
     "verify": "1",
-    "export": "1",
+    "export": "2",
 }
 
 

@@ -20,7 +20,8 @@ from neuralslicer.report import (
     plot_learning_curves,
     plot_strain_histogram,
 )
-from neuralslicer.samples import write_samples_ply
+from neuralslicer.cage import Cage
+from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, write_text_atomic
 from tasks.common import pipeline_task
@@ -90,6 +91,27 @@ def write_layers(layers_dir: Path, meshes: list[trimesh.Trimesh]) -> None:
         shutil.rmtree(staging, ignore_errors=True)
 
 
+def collision_resolution(
+    cage: Cage, B: SurfaceSamples, attempts: list[tuple[str, ArtifactRef, ArtifactRef]], alpha_deg: float
+) -> list[dict]:
+    """Per field printed on the way to the program: its label, nozzle collisions and overhang area fraction."""
+    rows = []
+    for label, field_ref, printing in attempts:
+        _, lpd, _ = read_field(cage, field_ref).sample(B.points)
+        pm = ArtifactStore(printing.store).attrs(printing.path)["metrics"]
+        rows.append({"stage": label, "collisions": int(pm.get("n_collisions", 0)),
+                          "overhang_area_fraction": overhang_area_fraction(B.normals, B.areas, B.on_platform, lpd,
+                                                                           alpha_deg)})
+    return rows
+
+
+def collision_table(rows: list[dict], alpha_deg: float) -> str:
+    """Markdown table of the collision resolution, in the order tried."""
+    lines = [f"| stage | nozzle collisions | overhang area (α = {alpha_deg:g}°) |", "| --- | --- | --- |"]
+    lines += [f"| {r['stage']} | {r['collisions']:,} | {100 * r['overhang_area_fraction']:.2f} % |" for r in rows]
+    return "\n".join(lines)
+
+
 @pipeline_task("export", exclude=(), valid=_export_current)
 def export_outputs(
     out: ArtifactRef,
@@ -107,6 +129,7 @@ def export_outputs(
     robot: bool,
     alpha_deg: float,
     beta_deg: float,
+    attempts: list[tuple[str, ArtifactRef, ArtifactRef]] | None = None,
 ) -> tuple[dict, dict]:
     """Write model.ply, layers/, field.vtu, samples_B.ply, metrics.json, report.md and figures to out_dir."""
     st = ArtifactStore(store)
@@ -188,7 +211,14 @@ def export_outputs(
     metrics["collisions"] = int(print_metrics.get("n_collisions", 0))
     plot_toolpaths_png(figs / "toolpaths.png", tp)
     figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
+    sections = {}
+    if attempts:
+        rows = collision_resolution(c, B, attempts, alpha_deg)
+        for i, row in enumerate(rows):
+            metrics.update({f"collision_resolution.{i}.{k}": v for k, v in row.items()})
+        sections["Collision resolution"] = collision_table(rows, alpha_deg)
     write_json_atomic(d / "metrics.json", metrics)
-    write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {model.model}", metrics, figures))
+    write_text_atomic(d / "report.md",
+                      markdown_report(f"Neural Slicer report: {model.model}", metrics, figures, sections))
     write_text_atomic(d / STAMP, out.digest)
     return {}, {"out_dir": str(d), "metrics": json.loads(json.dumps(metrics, default=float))}

@@ -183,6 +183,18 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     # the paper's fallback first (one re-optimisation with larger harmonic weights and CA), then the blend
     assert [r["state"] for r in runs if r["task"] == "field"] == ["Cached", "Completed"]
     assert tasks.count("field_blend") >= 2
+    # every field printed on the way is reported: the first is the colliding run above, the blends follow
+    stages = sorted({int(k.split(".")[1]) for k in metrics if k.startswith("collision_resolution.")})
+    rows = [{f: metrics[f"collision_resolution.{i}.{f}"] for f in ("stage", "collisions", "overhang_area_fraction")}
+            for i in stages]
+    assert len(rows) == 2 + tasks.count("field_blend")
+    assert rows[0]["stage"] == "optimised" and rows[0]["collisions"] == colliding["collisions"]
+    assert rows[0]["overhang_area_fraction"] == pytest.approx(colliding["sf.overhang_area_fraction"], abs=1e-12)
+    assert rows[1]["stage"].startswith("re-optimised, harmonic x")
+    chosen = [r for r in rows if r["stage"].startswith(f"planar blend t = {metrics['field.blend_planar']:.4g}")]
+    assert chosen and chosen[-1]["collisions"] == 0
+    assert chosen[-1]["overhang_area_fraction"] == pytest.approx(metrics["sf.overhang_area_fraction"], abs=1e-12)
+    assert "## Collision resolution" in (out / "report.md").read_text()
     assert metrics["field.objectives"] == "ca,sf"
     # the blend keeps part of the optimised field's gain unless it had to go all the way to planar layers
     if metrics["field.blend_planar"] < 1.0:
