@@ -296,9 +296,9 @@ def corrected_evaluation(
     return total, terms, done, violating_pairs(excess, cl.correction_tol)
 
 
-def enforce_collision_constraint(problem: FieldProblem, fields: DeformationFields) -> tuple[int, np.ndarray]:
+def enforce_collision_constraint(problem: FieldProblem, fields: DeformationFields) -> int:
     """Correct the final weights until no pair violates L_CA = 0 in the float64 field the result
-    stores (at most ``final_correction_steps`` steps); returns (steps made, float64 excess per pair)."""
+    stores (at most ``final_correction_steps`` steps); returns the steps made."""
     cl = problem.config.loss
     excess64 = problem.collision_excess64(fields)
     done = 0
@@ -310,7 +310,7 @@ def enforce_collision_constraint(problem: FieldProblem, fields: DeformationField
             break
         done += 1
         excess64 = problem.collision_excess64(fields)
-    return done, excess64
+    return done
 
 
 def initial_target(problem: FieldProblem, user_values: np.ndarray | None,
@@ -621,7 +621,7 @@ def _optimise_field(
         fields.load_state_dict(best_state["fields"])
     if config.loss.collision:
         # the hard constraint holds for the field that is returned, not only before each step
-        final_corrections += enforce_collision_constraint(problem, fields)[0]
+        final_corrections += enforce_collision_constraint(problem, fields)
     checkpoint()
 
     with torch.no_grad():
