@@ -103,8 +103,8 @@ def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRe
 
 
 def default_objectives(spec: ModelSpec) -> list[str]:
-    """sf, po, plus sr when the spec has an FEA load case."""
-    return ["sf", "po"] + (["sr"] if getattr(spec, "fea", None) is not None else [])
+    """sf, po, gc with the ca constraint, plus sr when the spec has an FEA load case."""
+    return ["sf", "po", "gc", "ca"] + (["sr"] if getattr(spec, "fea", None) is not None else [])
 
 
 @dataclass
@@ -140,7 +140,7 @@ def slice_pipeline(
         stress = log.run(stress_samples_task, store=store, model=model, fea=fea)
     user = store_user_field(store, name, user_field) if user_field else None
     machine = load_profile(config.machine)
-    neural = config.neural
+    neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width)
     # every field printed on the way to a collision-free program: (label, field, print)
     attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
     for attempt in range(config.collision_retries + 1):

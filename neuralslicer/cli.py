@@ -44,9 +44,10 @@ def parse_objectives(text: str) -> list[str]:
     if text.strip().lower() in ("none", ""):
         return []
     items = [t.strip().lower() for t in text.split(",") if t.strip()]
-    bad = [t for t in items if t not in ("sf", "sr", "po", "ca")]
+    bad = [t for t in items if t not in ("sf", "sr", "po", "gc", "ca")]
     if bad:
-        raise InputError("--objectives", f"unknown objective(s) {', '.join(bad)}; use a comma list of sf, sr, po, ca or 'none'")
+        raise InputError("--objectives", f"unknown objective(s) {', '.join(bad)}; use a comma list of sf, sr, po, gc, ca "
+                         "or 'none'")
     return items
 
 
@@ -217,7 +218,9 @@ def add_slice_parser(sub: Any) -> None:
     p.add_argument("--cage-elements", type=int, default=None, help="target number of cage tets (default 10000)")
     p.add_argument("--layer-height", type=float, default=None, help="target layer thickness in mm (default 0.8)")
     p.add_argument("--config", default=None, help="YAML configuration (sections: samples, cage, neural, layers)")
-    p.add_argument("--objectives", default=None, help="comma list of sf, sr, po, ca, or none (default sf,po[,sr])")
+    p.add_argument("--objectives", default=None,
+                   help="comma list of sf, sr, po, gc (global head collision), ca (local collision constraint), "
+                        "or none (default sf,po,gc,ca[,sr])")
     p.add_argument("--init", default=None, help="initial guess: height, heat or a file of values (default height)")
     p.add_argument("--max-steps", type=int, default=None, help="optimisation step budget")
     p.add_argument("--network", choices=("default", "paper"), default=None, help="network size preset")

@@ -102,7 +102,8 @@ def _slicing_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="study folder (study.md, study.json, one folder per branch)")
     p.add_argument("--up", choices=UP_AXES, default=None, help="the model's up axis (default z, or the spec's)")
     p.add_argument("--config", default=None, help="YAML configuration (sections: samples, cage, neural, layers)")
-    p.add_argument("--objectives", default=None, help="comma list of sf, sr, po, ca, or none (default sf,po[,sr])")
+    p.add_argument("--objectives", default=None,
+                   help="comma list of sf, sr, po, gc, ca, or none (default sf,po,gc,ca[,sr])")
     p.add_argument("--max-steps", type=int, default=None, help="optimisation step budget")
     p.add_argument("--layer-height", type=float, default=None, help="target layer thickness in mm")
     p.add_argument("--network", choices=("default", "paper", "small"), default=None, help="network size preset")

@@ -13,7 +13,7 @@ from neuralslicer.layers import LayerConfig
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 
-Objective = Literal["sf", "sr", "po", "ca"]
+Objective = Literal["sf", "sr", "po", "gc", "ca"]
 
 
 class SampleConfig(BaseModel):
@@ -29,7 +29,9 @@ class SliceConfig(BaseModel):
 
     model_config = {"extra": "forbid"}
 
-    objectives: list[Objective] | None = Field(None, description="default: sf, po (+ sr when the spec has loads)")
+    objectives: list[Objective] | None = Field(
+        None, description="default: sf, po, gc (global head collision) and ca (local collision constraint), "
+        "+ sr when the spec has loads")
     samples: SampleConfig = Field(default_factory=SampleConfig)
     cage: CageConfig = Field(default_factory=CageConfig)
     neural: NeuralConfig = Field(default_factory=NeuralConfig)

@@ -99,6 +99,30 @@ def plot_learning_curves(path: Path, curves: dict[str, dict[str, np.ndarray]]) -
     _save(fig, path)
 
 
+def plot_collision_map(path: Path, prints: dict[str, tuple[np.ndarray, np.ndarray]], max_points: int = 40_000) -> None:
+    """Where the head hits: waypoints (n,3) of each print, grey, with the colliding ones (bool (n,)) in red,
+    one 3D view per print in the order given (the first field printed, then what resolved its collisions)."""
+    n = max(len(prints), 1)
+    fig = plt.figure(figsize=(5.5 * n, 5.5))
+    for k, (label, (xyz, hit)) in enumerate(prints.items()):
+        ax = fig.add_subplot(1, n, k + 1, projection="3d")
+        ok = np.flatnonzero(~hit)
+        ok = ok[:: max(1, len(ok) // max_points)]
+        ax.scatter(*xyz[ok].T, s=0.3, c="0.75", alpha=0.4, linewidths=0)
+        bad = np.flatnonzero(hit)
+        bad = bad[:: max(1, len(bad) // max_points)]
+        ax.scatter(*xyz[bad].T, s=3, c="red", linewidths=0)
+        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+        centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6)
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_zlim(centre[2] - half, centre[2] + half)
+        ax.view_init(elev=20, azim=-60)
+        ax.set_title(f"{label}\n{int(hit.sum()):,} colliding of {len(hit):,} waypoints", fontsize=9)
+    fig.suptitle("print head collisions (red) against earlier layers and the platform")
+    _save(fig, path)
+
+
 def markdown_report(title: str, metrics: dict, figures: dict[str, str], sections: dict[str, str] | None = None) -> str:
     """A Markdown report: a metrics table, extra sections, and the figures."""
     lines = [f"# {title}", "", "| metric | value |", "| --- | --- |"]

@@ -22,12 +22,12 @@ STEP_VERSIONS = {
     "cage": "1",
     "fea": "1",
     "stress_samples": "1",
-    "field": "1",
+    "field": "2",
     "field_blend": "1",
     "layers": "4",
-    "toolpaths": "1",
+    "toolpaths": "2",
     "verify": "1",
-    "export": "2",
+    "export": "3",
 }
 
 

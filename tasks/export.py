@@ -16,6 +16,7 @@ from neuralslicer.metrics import overhang_area_fraction, strength_angles, streng
 from neuralslicer.report import (
     markdown_report,
     plot_angle_histogram,
+    plot_collision_map,
     plot_layers,
     plot_learning_curves,
     plot_strain_histogram,
@@ -27,7 +28,7 @@ from storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, 
 from tasks.common import pipeline_task
 from neuralslicer.motion.pipeline import write_print_outputs
 from neuralslicer.toolpath.io import plot_toolpaths_png
-from tasks.steps import read_cage, read_field, read_layers, read_print, read_samples
+from tasks.steps import read_cage, read_collision_map, read_field, read_layers, read_print, read_samples
 
 STAMP = ".neuralslicer-export"
 PRINT_METRICS = (
@@ -211,6 +212,11 @@ def export_outputs(
     metrics["collisions"] = int(print_metrics.get("n_collisions", 0))
     plot_toolpaths_png(figs / "toolpaths.png", tp)
     figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
+    maps = {"printed": read_collision_map(printing)}
+    if attempts and attempts[0][2] != printing:
+        maps = {f"first print ({attempts[0][0]})": read_collision_map(attempts[0][2]), **maps}
+    plot_collision_map(figs / "collisions.png", maps)
+    figures["Print head collisions (red)"] = "figures/collisions.png"
     sections = {}
     if attempts:
         rows = collision_resolution(c, B, attempts, alpha_deg)

@@ -5,7 +5,9 @@ import numpy as np
 from prefect import get_run_logger
 
 from neuralslicer.cage import Cage
+from neuralslicer.model.solid import Solid
 from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.neural.head_collision import collision_pool
 from neuralslicer.neural.optimise import optimise_field
 from storage import ArtifactRef, ArtifactStore
 from tasks.progress import Progress
@@ -20,6 +22,7 @@ def objective_config(config: NeuralConfig, objectives: list[str]) -> NeuralConfi
             "w_sf": config.loss.w_sf if "sf" in objectives else 0.0,
             "w_po": config.loss.w_po if "po" in objectives else 0.0,
             "w_sr": (config.loss.w_sr or 1.0) if "sr" in objectives else 0.0,
+            "w_gc": (config.loss.w_gc or 1.0) if "gc" in objectives else 0.0,
             "collision": "ca" in objectives,
         }
     )
@@ -57,7 +60,7 @@ def run_optimisation(
     stress: dict[str, np.ndarray] | None,
     objectives: list[str],
     config: NeuralConfig,
-    platform_z: float,
+    solid: Solid,
     user_field: np.ndarray | None = None,
     user_field_points: np.ndarray | None = None,
 ) -> tuple[dict, dict]:
@@ -65,6 +68,10 @@ def run_optimisation(
     store = ArtifactStore(out.store)
     checkpoints = StoreCheckpoints(store, f"{out.model}/checkpoints/{out.digest}")
     cfg = objective_config(config, objectives)
+    pool = None
+    if cfg.loss.w_gc > 0:
+        pool = collision_pool(solid.H, solid.bounds, solid.volume(), samples["points"], cfg.loss.gc_points,
+                              cfg.loss.gc_spacing, seed=cfg.optim.seed)
     with Progress("optimise", total=cfg.optim.max_steps) as bar:
         result = optimise_field(
             cage.vertices,
@@ -78,14 +85,15 @@ def run_optimisation(
             stress_volumes=None if stress is None else stress["volumes"],
             stress_tau=None if stress is None else stress["tau_max"],
             config=cfg,
-            platform_z=platform_z,
+            platform_z=solid.platform_z,
             user_field=user_field,
             user_field_points=user_field_points,
             progress=lambda step, info: bar.update(
-                step, **{k: float(info[k]) for k in ("total", "sf", "po", "sr", "lr") if k in info}
+                step, **{k: float(info[k]) for k in ("total", "sf", "po", "sr", "gc", "lr") if k in info}
             ),
             save_checkpoint=checkpoints.save,
             load_checkpoint=checkpoints.load,
+            collision_pool=pool,
         )
     arrays, attrs = result.to_arrays()
     get_run_logger().info("optimised in %d steps (%.1f s): %s", result.steps, result.wall_time_s, result.final)

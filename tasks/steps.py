@@ -118,9 +118,7 @@ def optimise_field_task(
     b, _ = ArtifactStore(store).read(samples.path)
     t = ArtifactStore(store).read(stress.path)[0] if stress is not None else None
     user = ArtifactStore(store).read(user_field.path)[0] if user_field is not None else {}
-    return run_optimisation(
-        out, c, b, t, objectives, config, read_solid(model).platform_z, user.get("values"), user.get("points")
-    )
+    return run_optimisation(out, c, b, t, objectives, config, read_solid(model), user.get("values"), user.get("points"))
 
 
 @pipeline_task("field_blend")
@@ -169,12 +167,13 @@ def plan_print_task(
 ) -> tuple[dict, dict]:
     """Toolpaths on every layer, the machine program (IK, extrusion, collisions) and their metrics."""
     solid = read_solid(model)
-    tp, program, metrics = plan_print(
+    tp, program, metrics, collisions = plan_print(
         read_layers(layers).meshes, platform_z=solid.platform_z, solid_H=solid.H, toolpath_cfg=config, profile=machine
     )
     tp_arrays, tp_attrs = tp.to_arrays()
     prog_arrays, prog_attrs = program.to_arrays()
-    arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()}}
+    arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()},
+              "collisions/indices": collisions.indices, "collisions/kind": collisions.kind}
     get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("collisions", 0))
     return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
 
@@ -188,6 +187,14 @@ def read_print(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
         MachineProgram.from_arrays(part["program"], attrs["program"]),
         attrs["metrics"],
     )
+
+
+def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints (n,3) of a stored print and which of them collide (n,) bool."""
+    arrays, _ = ArtifactStore(ref.store).read(ref.path, ["toolpaths/xyz", "collisions/indices"])
+    hit = np.zeros(len(arrays["toolpaths/xyz"]), bool)
+    hit[np.asarray(arrays["collisions/indices"], np.int64)] = True
+    return arrays["toolpaths/xyz"], hit
 
 
 def store_user_field(store: str, model: str, path: str) -> ArtifactRef:

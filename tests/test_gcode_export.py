@@ -26,7 +26,7 @@ def curved():
     profile = load_profile("table_bc_linuxcnc").model_copy(deep=True)
     profile.kinematics.pivot = (5.0, -7.0, 60.0)
     profile.kinematics.c_offset = (0.0, 0.0, 12.0)
-    tp, prog, metrics = plan_print(layers, platform_z=0.0, profile=profile)
+    tp, prog, metrics, _ = plan_print(layers, platform_z=0.0, profile=profile)
     return tp, prog, metrics
 
 
@@ -62,7 +62,7 @@ def test_forward_kinematics_of_parsed_gcode_reproduces_waypoints(tmp_path, curve
 def test_extruded_volume_matches_a_cylinder():
     layers = [disc_layer(0.5 * (i + 1), radius=8.0, n_rings=16, n_sectors=64) for i in range(6)]
     H = lambda p: np.maximum(np.linalg.norm(p[:, :2], axis=1) - 8.0, np.maximum(-p[:, 2], p[:, 2] - 3.0))  # noqa: E731
-    tp, prog, metrics = plan_print(layers, platform_z=0.0, solid_H=H)
+    tp, prog, metrics, _ = plan_print(layers, platform_z=0.0, solid_H=H)
     assert metrics["n_waypoints_outside_solid"] == 0 and metrics["max_H_at_waypoints"] <= 1e-3
     volume = np.pi * 8.0 ** 2 * 3.0
     assert abs(metrics["material_mm3"] / volume - 1.0) < 0.15
@@ -99,7 +99,7 @@ def _rs274_ini(tmp_path):
 def test_linuxcnc_rs274_accepts_the_program(tmp_path):
     layers = planar_stack(3, size=6.0, n=7) + cap_stack(2, r0=3.0, theta_max_deg=40.0, center=(0, 0, -1.5),
                                                          subdivisions=3)
-    tp, prog, _ = plan_print(layers, platform_z=0.0)
+    tp, prog, _, _ = plan_print(layers, platform_z=0.0)
     ngc = write_gcode(tmp_path / "print.ngc", prog)
     ini, tbl = _rs274_ini(tmp_path)
     out = tmp_path / "canon.txt"

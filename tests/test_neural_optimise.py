@@ -36,7 +36,8 @@ def problem():
 def _cfg(**optim) -> NeuralConfig:
     return NeuralConfig.model_validate({
         "network": "small", "device": "cpu",
-        "optim": {"max_steps": 30, "checkpoint_every": 5, "convergence_window": 1000, **optim},
+        # target_overhang 0: run to the budget, the step counts are what these tests check
+        "optim": {"max_steps": 30, "checkpoint_every": 5, "convergence_window": 1000, "target_overhang": 0, **optim},
     })
 
 
@@ -149,8 +150,8 @@ def test_device_auto():
 def _valley_config(collision: bool, max_steps: int = 0, **loss) -> NeuralConfig:
     return NeuralConfig.model_validate({
         "network": "small", "device": "cpu",
-        "optim": {"max_steps": max_steps, "convergence_window": 1000},
-        "loss": {"collision": collision, **loss},
+        "optim": {"max_steps": max_steps, "convergence_window": 1000, "target_overhang": 0},
+        "loss": {"collision": collision, "phi_deg": 120.0, **loss},
         "init": {"kind": "user", "pretrain_steps": 60, "pretrain_lr": 3e-3},
     })
 
@@ -222,3 +223,14 @@ def test_harmonic_pretraining_fits_the_guess_with_smoother_fields(problem):
     assert smooth.final["hs"] + smooth.final["hq"] < 0.5 * (plain.final["hs"] + plain.final["hq"])
     target = height_matched(user, V)
     assert np.corrcoef(smooth.G, target)[0, 1] > 0.98
+
+
+def test_a_run_stops_once_the_constraints_are_met(problem):
+    """Support-free within target_overhang (and L_CA = 0): that iterate is the result, found at a check."""
+    planar = _run(problem, _cfg(max_steps=0)).satisfaction["planar_overhang_area_fraction"]
+    res = _run(problem, _cfg(max_steps=400, target_loss=0.0, target_overhang=0.5 * planar))
+    assert res.converged and res.steps < 400 and res.steps % 10 == 0
+    assert res.satisfaction["overhang_area_fraction"] <= 0.5 * planar
+    assert res.attrs["collision"]["violating_pairs"] == 0
+    # the same run without the rule goes on to its budget
+    assert _run(problem, _cfg(max_steps=res.steps + 20, target_loss=0.0)).steps == res.steps + 20

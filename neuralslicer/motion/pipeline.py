@@ -9,7 +9,7 @@ from typing import Callable, Sequence
 import numpy as np
 import trimesh
 
-from neuralslicer.motion.collision import check_collisions
+from neuralslicer.motion.collision import CollisionReport, check_collisions
 from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.toolpath.config import ToolpathConfig
@@ -22,8 +22,9 @@ from neuralslicer.toolpath.types import Toolpaths
 def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
                solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
                toolpath_cfg: ToolpathConfig | None = None,
-               profile: MachineProfile | str | None = None) -> tuple[Toolpaths, MachineProgram, dict]:
-    """Toolpaths, machine program and metrics for curved layers in print order.
+               profile: MachineProfile | str | None = None
+               ) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
+    """Toolpaths, machine program, metrics and the head's collisions for curved layers in print order.
 
     layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
     platform_z : platform height; solid_H : optional implicit solid (H < 0 inside) used to count
@@ -56,7 +57,7 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
         metrics["max_H_at_waypoints"] = float(h.max(initial=-np.inf))
     metrics["timings_s"] = {"toolpaths": t1 - t0, "motion": t2 - t1, "collisions": t3 - t2}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
-    return tp, program, metrics
+    return tp, program, metrics, report
 
 
 def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,

@@ -5,6 +5,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from neuralslicer.motion.profile import Nozzle
+
 
 class NetworkConfig(BaseModel):
     """SIREN size and initialisation for the quaternion and scale networks."""
@@ -64,7 +66,26 @@ class LossConfig(BaseModel):
     k_sf: float = Field(30.0, gt=0, description="logistic growth rate of L_SF")
     k_sr: float = Field(15.0, gt=0, description="logistic growth rate of L_SR")
     collision: bool = Field(True, description="enforce L_CA = 0 by a DC3-style correction")
-    phi_deg: float = Field(120.0, gt=0, lt=180, description="printer-head cone apex angle phi")
+    phi_deg: float | None = Field(
+        None, gt=0, lt=180,
+        description="printer-head cone apex angle phi of L_CA (default: twice the head's cone half angle)")
+    w_gc: float = Field(0.0, ge=0, description="global collision weight (the 'gc' objective sets 1 when it is 0)")
+    head: Nozzle = Field(
+        default_factory=Nozzle,
+        description="print head of L_GC and L_CA (the pipeline takes it from the machine profile's nozzle)")
+    head_min_height: float = Field(
+        0.5, ge=0, description="material closer than this to the tip along the axis is the bead itself (mm)")
+    gc_points: int = Field(
+        2000, ge=100, description="points of the jittered grid that stands for the solid in L_GC (surface "
+        "samples, one per grid cell, come on top)")
+    gc_spacing: float | None = Field(
+        None, gt=0, description="pool spacing (mm; default: (solid volume / gc_points)^(1/3))")
+    gc_clearance: float | None = Field(
+        None, ge=0, description="head clearance of L_GC (mm; default: 1.5 x the pool spacing, which covers tips "
+        "and material between pool points and the smoothing of the tool axis along the toolpaths)")
+    gc_order_margin: float = Field(
+        0.1, ge=0, description="print-order margin of L_GC: x collides when G(x) < G(p) + margin")
+
     correction_steps: int = Field(
         20, ge=0, description="max DC3 correction steps before one loss evaluation (stops when feasible)"
     )
@@ -139,6 +160,13 @@ class OptimConfig(BaseModel):
         "ever smaller harmonic terms), so a run stopped by the budget or a stall test ends wherever "
         "its start left it; a target gives every start the same end point",
     )
+    target_overhang: float = Field(
+        1e-3, ge=0,
+        description="converged once the overhang area fraction of B is at most this, the head collides "
+        "nowhere (L_GC = 0) and L_CA = 0: the constraints are met (0: off; not with a strength "
+        "objective, which has no such state)")
+    check_every: int = Field(
+        10, ge=1, description="steps between searches for L_GC's pairs near collision and constraint checks")
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")
     seed: int = Field(0, description="seed of torch, numpy and python RNGs")
 
@@ -171,6 +199,17 @@ class NeuralConfig(BaseModel):
     init: InitConfig = Field(default_factory=InitConfig)
     device: str = Field("auto", description="'auto' (CUDA if available), 'cpu', 'cuda', 'cuda:1'")
     dtype: Literal["float32", "float64"] = Field("float32", description="network/loss precision")
+
+    def with_head(self, nozzle: Nozzle, min_height: float) -> "NeuralConfig":
+        """This config with the machine's print head for L_GC and L_CA; material closer than min_height
+        (the line width, at least 0.3 mm, as in the motion planner's check) to the tip is the bead."""
+        loss = self.loss.model_copy(update={"head": nozzle, "head_min_height": max(0.3, float(min_height))})
+        return self.model_copy(update={"loss": loss})
+
+    def apex_deg(self) -> float:
+        """The cone apex angle of L_CA: set explicitly, or twice the head's cone half angle."""
+        cl = self.loss
+        return cl.phi_deg if cl.phi_deg is not None else 2.0 * cl.head.cone_half_angle_deg
 
     def network_config(self) -> NetworkConfig:
         """The resolved network size (preset names looked up in NETWORK_PRESETS)."""

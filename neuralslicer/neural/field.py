@@ -59,6 +59,14 @@ class CageGeometry:
             _, tet[out] = cKDTree(self.centroids).query(points[out])
         return tet
 
+    def barycentric(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(containing tet (n,), barycentric coordinates (n,4)) of points; a point outside the cage
+        takes the nearest tet, its coordinates extrapolated (G stays linear there)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        tet = self.locate(points)
+        bary = 0.25 + np.einsum("nij,nj->ni", self.bary_grads[tet], points - self.centroids[tet])
+        return tet, bary
+
 
 def field_gradient(G: torch.Tensor, tets: torch.Tensor, bary_grads: torch.Tensor) -> torch.Tensor:
     """Per-tet gradient of the piecewise-linear G: sum_i G[v_i] grad a_i, (m,3) from G (n,)."""

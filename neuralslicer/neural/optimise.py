@@ -25,6 +25,7 @@ from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.deformation import ArapDeformation
 from neuralslicer.neural.device import resolve_device, resolve_dtype
 from neuralslicer.neural.field import CageGeometry, field_gradient, unit
+from neuralslicer.neural.head_collision import CollisionPool, HeadCollision, HeadShape
 from neuralslicer.neural.initial_guess import (
     heat_geodesic,
     height_matched,
@@ -33,7 +34,7 @@ from neuralslicer.neural.initial_guess import (
 )
 from neuralslicer.neural.networks import DeformationFields
 
-TERMS = ("sf", "sr", "po", "hs", "hq", "ca")
+TERMS = ("sf", "sr", "po", "hs", "hq", "gc", "ca")
 CHECKPOINT_VERSION = 1
 ProgressFn = Callable[[int, dict], None]
 
@@ -99,8 +100,10 @@ class FieldProblem:
         stress_tau: np.ndarray | None,
         config: NeuralConfig,
         platform_z: float | None,
+        collision_pool: CollisionPool | None = None,
     ) -> None:
         self.config = config
+        self.phi = math.radians(config.apex_deg())
         self.device = resolve_device(config.device)
         self.dtype = resolve_dtype(config.dtype)
         self.geometry = CageGeometry.build(cage_vertices, cage_tets)
@@ -153,6 +156,35 @@ class FieldProblem:
         self.t_tet_t = T(self.t_tet, torch.int64)
         self.t_tau_t = T(self.t_tau)
         self.t_volumes_t = T(self.t_volumes)
+        self.head = self._head_collision(collision_pool)
+
+    def _head_collision(self, pool: CollisionPool | None) -> HeadCollision | None:
+        """L_GC on the pool of solid points (None when its weight is 0); the pool is required then."""
+        cl = self.config.loss
+        if cl.w_gc <= 0:
+            return None
+        if pool is None or len(pool.points) == 0:
+            raise ValueError("the global collision term (w_gc > 0) needs a collision_pool of points in the solid")
+        tet, bary = self.geometry.barycentric(pool.points)
+        head = HeadShape.from_nozzle(cl.head, cl.head_min_height)
+        clearance = cl.gc_clearance if cl.gc_clearance is not None else 1.5 * pool.spacing
+        return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
+                             cl.gc_order_margin, pool.spacing, pool.spacing, self.device, self.dtype)
+
+    def refresh_collisions(self, fields: DeformationFields) -> int:
+        """Search the pairs near collision for the current weights (L_GC's active set); their number."""
+        if self.head is None:
+            return 0
+        with torch.no_grad():
+            G, _, _ = self.height(fields)
+            return self.head.refresh(G, field_gradient(G, self.tets_t, self.bary_grads_t))
+
+    def head_collisions(self, G: np.ndarray) -> dict[str, int]:
+        """Collisions of the head over the whole pool for a field G (n,) at the cage vertices."""
+        if self.head is None:
+            return {}
+        Gt = torch.as_tensor(G, dtype=self.dtype, device=self.device)
+        return self.head.count(Gt, field_gradient(Gt, self.tets_t, self.bary_grads_t))
 
     def new_fields(self) -> DeformationFields:
         """Fresh identity-initialised networks (uses the torch RNG) on the problem's device/dtype."""
@@ -191,21 +223,22 @@ class FieldProblem:
                        if cl.w_po > 0 and self.b_knn_t.numel() else zero)
         terms["hs"] = L.harmonic_scale_loss(s, self.pairs_t, self.pair_weights_t) if cl.w_hs > 0 else zero
         terms["hq"] = L.harmonic_quaternion_loss(q, self.pairs_t, self.pair_weights_t) if cl.w_hq > 0 else zero
+        terms["gc"] = self.head.loss(G, grad) if self.head is not None else zero
         excess = None
         if cl.collision:
-            excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, math.radians(cl.phi_deg))
+            excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
             terms["ca"] = torch.relu(excess).mean() if excess.numel() else zero
         else:
             terms["ca"] = zero
         total = (cl.w_sf * terms["sf"] + cl.w_sr * terms["sr"] + cl.w_po * terms["po"]
-                 + cl.w_hs * terms["hs"] + cl.w_hq * terms["hq"])
+                 + cl.w_hs * terms["hs"] + cl.w_hq * terms["hq"] + cl.w_gc * terms["gc"])
         return total, terms, excess
 
     def collision_excess(self, fields: DeformationFields) -> torch.Tensor:
         """Per-pair collision excess angle (rad, > 0 violates) in the working dtype, with its graph."""
         G, _, _ = self.height(fields)
         grad = field_gradient(G, self.tets_t, self.bary_grads_t)
-        return L.collision_excess(grad, self.pairs_t, self.pair_normals_t, math.radians(self.config.loss.phi_deg))
+        return L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
 
     def collision_excess64(self, fields: DeformationFields) -> np.ndarray:
         """Per-pair collision excess angle of the field the result stores (float64 deformation)."""
@@ -219,8 +252,27 @@ class FieldProblem:
         g = self.geometry
         grad = np.einsum("ei,eij->ej", np.asarray(G, dtype=np.float64)[g.tets], g.bary_grads)
         e = L.collision_excess(torch.from_numpy(grad), torch.from_numpy(g.pairs),
-                               torch.from_numpy(g.pair_normals), math.radians(self.config.loss.phi_deg))
+                               torch.from_numpy(g.pair_normals), self.phi)
         return e.numpy()
+
+    def constraints_met(self, fields: DeformationFields) -> bool:
+        """Support-free within ``optim.target_overhang`` (area fraction of B), no head collision
+        (none in the pool with the head grown by half its clearance) and L_CA = 0; never with a strength objective, which has no
+        satisfied state (always False when target_overhang is 0 or SF is off)."""
+        cl, oc = self.config.loss, self.config.optim
+        if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
+            return False
+        with torch.no_grad():
+            G, _, _ = self.height(fields)
+            grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+            d = unit(grad[self.b_tet_t]).double().cpu().numpy()
+            if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
+                                      cl.alpha_deg) > oc.target_overhang:
+                return False
+            if cl.collision and violating_pairs(L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi),
+                                                cl.correction_tol):
+                return False
+            return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
 
     def planar_lpd_satisfaction(self) -> dict[str, float]:
         """SF/SR satisfaction of planar layers (d = +z)."""
@@ -294,6 +346,23 @@ def corrected_evaluation(
         done += 1
         total, terms, excess = problem.evaluate_with_excess(fields)
     return total, terms, done, violating_pairs(excess, cl.correction_tol)
+
+
+def loss_of(problem: FieldProblem, fields: DeformationFields, weights: dict) -> float:
+    """Total loss of other weights (the fields' own weights are left as they were)."""
+    current = _clone_state(fields.state_dict())
+    fields.load_state_dict(weights)
+    with torch.no_grad():
+        total = float(problem.evaluate(fields)[0])
+    fields.load_state_dict(current)
+    return total
+
+
+def stale_collisions(problem: FieldProblem, fields: DeformationFields) -> bool:
+    """Search L_GC's pairs afresh for the current weights; True when the head still collides."""
+    problem.refresh_collisions(fields)
+    with torch.no_grad():
+        return float(problem.evaluate(fields)[1]["gc"]) > 0
 
 
 def enforce_collision_constraint(problem: FieldProblem, fields: DeformationFields) -> int:
@@ -440,6 +509,7 @@ def optimise_field(
     progress: ProgressFn | None = None,
     save_checkpoint: Callable[[bytes, int], None] | None = None,
     load_checkpoint: Callable[[], bytes | None] | None = None,
+    collision_pool: CollisionPool | None = None,
 ) -> FieldResult:
     """Optimise the SIREN fields q, s so that G = deformed z meets the SF/SR/PO objectives.
 
@@ -458,13 +528,15 @@ def optimise_field(
         info["phase"] == "pretrain".
     save_checkpoint(bytes, step) : called every ``optim.checkpoint_every`` steps and at the end.
     load_checkpoint() -> bytes | None : a previous checkpoint to resume from.
+    collision_pool : points inside the solid that stand for it in the global collision term L_GC
+        (see :func:`neuralslicer.neural.head_collision.collision_pool`); needed when ``loss.w_gc > 0``.
     """
     config = config or NeuralConfig()
     with deterministic_algorithms():
         return _optimise_field(
             cage_vertices, cage_tets, surface_points, surface_normals, surface_areas, surface_knn,
             surface_on_platform, stress_points, stress_volumes, stress_tau, config, platform_z,
-            user_field, user_field_points, progress, save_checkpoint, load_checkpoint,
+            user_field, user_field_points, progress, save_checkpoint, load_checkpoint, collision_pool,
         )
 
 
@@ -498,12 +570,13 @@ def _optimise_field(
     progress: ProgressFn | None,
     save_checkpoint: Callable[[bytes, int], None] | None,
     load_checkpoint: Callable[[], bytes | None] | None,
+    collision_pool: CollisionPool | None,
 ) -> FieldResult:
     """optimise_field's body, run under deterministic torch algorithms."""
     t0 = time.perf_counter()
     problem = FieldProblem(
         cage_vertices, cage_tets, surface_points, surface_normals, surface_areas, surface_knn,
-        surface_on_platform, stress_points, stress_volumes, stress_tau, config, platform_z,
+        surface_on_platform, stress_points, stress_volumes, stress_tau, config, platform_z, collision_pool,
     )
     oc = config.optim
     seed_everything(oc.seed)
@@ -537,6 +610,8 @@ def _optimise_field(
         best_state, rollbacks = state.get("best"), int(state.get("rollbacks", 0))
         trend = list(state.get("trend", []))
         history = {k: list(v) for k, v in state["history"].items()}
+        for k in TERMS:  # checkpoints written before a term existed
+            history.setdefault(k, [0.0] * len(history["total"]))
         pretrain_hist = np.asarray(state["pretrain_history"])
         _set_rng_state(state["rng"])
     else:
@@ -569,6 +644,14 @@ def _optimise_field(
     if not trend:
         trend = _trend_of(history["total"], oc.trend_smoothing) if history["total"] else []
     while step < oc.max_steps and not converged:
+        if step % oc.check_every == 0:
+            if problem.head is not None:
+                problem.refresh_collisions(fields)
+                if best_state is not None:  # the best loss again, on the new pairs
+                    best_state["loss"] = loss_of(problem, fields, best_state["fields"])
+            if step > 0 and problem.constraints_met(fields):
+                converged, best_state = True, None  # this iterate is the result
+                break
         total, terms, n_corr, n_viol = corrected_evaluation(problem, fields)
         tv = float(total.detach())
         lr = optimizer.param_groups[0]["lr"]
@@ -607,6 +690,9 @@ def _optimise_field(
                 converged = converged or (old - new) <= 1e-9 * abs(old)
         if oc.target_loss > 0 and best[-1] <= oc.target_loss:
             converged = True
+            if problem.head is not None and stale_collisions(problem, fields):
+                # the best loss was measured on an outdated set of pairs: forget it and go on
+                converged, best_state, best[-1] = False, None, math.inf
         if progress is not None:
             info = {k: history[k][-1] for k in history}
             info["elapsed_s"] = time.perf_counter() - t0
@@ -624,6 +710,7 @@ def _optimise_field(
         final_corrections += enforce_collision_constraint(problem, fields)
     checkpoint()
 
+    problem.refresh_collisions(fields)  # L_GC of the result on a fresh set of pairs
     with torch.no_grad():
         q, s = fields(problem.centroids_t)
         V = problem.arap.deform(q.double(), s.double()).cpu().numpy()
@@ -632,7 +719,7 @@ def _optimise_field(
     excess64 = problem.excess_of(G)
     n_viol = violating_pairs(excess64, config.loss.correction_tol)
     collision = {
-        "enforced": bool(config.loss.collision), "phi_deg": config.loss.phi_deg,
+        "enforced": bool(config.loss.collision), "phi_deg": config.apex_deg(),
         "ca": float(np.maximum(excess64, 0).mean()) if len(excess64) else 0.0,
         "violating_pairs": n_viol, "n_pairs": int(len(excess64)),
         "max_excess_rad": float(excess64.max()) if len(excess64) else 0.0,
@@ -651,6 +738,10 @@ def _optimise_field(
     if config.loss.collision:  # the constraint as stored: the float64 field, pairs counted
         final["ca"] = collision["ca"]
         final["ca_violating_pairs"] = float(n_viol)
+    head = problem.head_collisions(G)
+    if head:
+        final["gc_colliding_pairs"] = float(head["colliding_pairs"])
+        head.update(weight=config.loss.w_gc, spacing=problem.head.length, clearance=problem.head.clearance)
     return FieldResult(
         deformed_vertices=V, G=G, lpd=lpd, quaternions=q.double().cpu().numpy(),
         scales=s.double().cpu().numpy(),
@@ -660,5 +751,6 @@ def _optimise_field(
         attrs={"config": config.model_dump(mode="json"), "seed": oc.seed,
                "solver_backend": problem.arap.backend, "device": str(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,
+               "head_collision": head,
                "rollbacks": rollbacks, "best_step": None if best_state is None else int(best_state["step"]) + 1},
     )
