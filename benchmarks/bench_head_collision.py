@@ -119,8 +119,23 @@ def _objectives(variant: str, strength: bool) -> str:
     return base + (",sr" if strength else "")
 
 
-def _slice(model: list[str], variant: str, strength: bool, extra: list[str]) -> dict:
-    """One CLI slice in a fresh folder: its metrics and wall time."""
+def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints and collision flags of the printed program (the print whose counts match the metrics)."""
+    from storage import ArtifactStore, ArtifactRef
+    from tasks.steps import read_collision_map
+
+    st = ArtifactStore(store)
+    for group in sorted(store.glob("*/toolpaths/*")):
+        path = str(group.relative_to(store))
+        if st.exists(path):
+            m = st.attrs(path)["metrics"]
+            if m["n_collisions"] == metrics["collisions"] and m["n_waypoints"] == metrics["n_waypoints"]:
+                return read_collision_map(ArtifactRef(str(store), path, ""))
+    raise RuntimeError(f"{store}: no print matches the metrics")
+
+
+def _slice(model: list[str], variant: str, strength: bool, extra: list[str], maps: dict) -> dict:
+    """One CLI slice in a fresh folder: its metrics and wall time (and its collision map into maps)."""
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "neuralslicer.cli", "slice", *model, "--out", f"{tmp}/out",
                "--objectives", _objectives(variant, strength), *VARIANTS[variant], *extra]
@@ -128,6 +143,7 @@ def _slice(model: list[str], variant: str, strength: bool, extra: list[str]) -> 
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=REPO)
         wall = time.perf_counter() - t0
         m = json.loads(Path(tmp, "out", "metrics.json").read_text())
+        maps[f"{variant}: {m['collisions']:,} collisions"] = _printed_map(Path(tmp, "out", "store.zarr"), m)
     first = m.get("collision_resolution.0.collisions", m.get("collisions"))
     return {"wall_s": wall, "first_print_collisions": first, "collisions": m.get("collisions"),
             "overhang": m.get("sf.overhang_area_fraction"), "overhang_planar": m.get("sf.overhang_area_fraction_planar"),
@@ -145,8 +161,12 @@ def ablation(models: list[str]) -> dict:
     out = json.loads(RESULTS.read_text()).get("ablation", {}) if RESULTS.exists() else {}
     for name in models:
         model, strength, extra = cases[name]
-        out[name] = {v: _slice(model, v, strength, extra) for v in VARIANTS}
+        maps: dict = {}
+        out[name] = {v: _slice(model, v, strength, extra, maps) for v in VARIANTS}
         _merge("ablation", out)
+        from neuralslicer.report import plot_collision_map
+
+        plot_collision_map(RESULTS.with_name(f"bench_head_collision_{name}.png"), maps)
     print("| model | variant | collisions (first print -> printed) | overhang | SR | steps | time s |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name, rows in out.items():

@@ -108,7 +108,8 @@ def plot_collision_map(path: Path, prints: dict[str, tuple[np.ndarray, np.ndarra
         ax = fig.add_subplot(1, n, k + 1, projection="3d")
         ok = np.flatnonzero(~hit)
         ok = ok[:: max(1, len(ok) // max_points)]
-        ax.scatter(*xyz[ok].T, s=0.3, c="0.75", alpha=0.4, linewidths=0)
+        ax.scatter(*xyz[ok].T, s=0.6, c=xyz[ok, 2], cmap="Greys", vmin=xyz[:, 2].min() - 0.6 * np.ptp(xyz[:, 2]),
+                   alpha=0.5, linewidths=0)
         bad = np.flatnonzero(hit)
         bad = bad[:: max(1, len(bad) // max_points)]
         ax.scatter(*xyz[bad].T, s=3, c="red", linewidths=0)

@@ -159,6 +159,20 @@ def test_unknown_option_is_one_line_exit_2(tmp_path, small_part, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_default_objectives_are_print_head_aware_with_the_local_constraint(tmp_path, small_part):
+    cfg = write_config(tmp_path / "cfg.yaml")
+    out = tmp_path / "run"
+    assert main(slice_cmd(small_part, out, cfg)) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["field.objectives"] == "sf,po,gc,ca"
+    # L_CA = 0 holds in the stored field, the pool sees no head collision, the program has none
+    assert metrics["loss.ca_violating_pairs"] == 0 and metrics["loss.ca"] == 0
+    assert metrics["loss.gc_colliding_pairs"] == 0 and "loss.gc" in metrics
+    assert metrics["collisions"] == 0
+    assert metrics["sf.overhang_area_fraction"] < metrics["sf.overhang_area_fraction_planar"]
+    assert (out / "figures" / "collisions.png").is_file()
+
+
 def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     # a print head whose wide cone grazes the part as soon as the tool tilts: the optimised field collides
     from neuralslicer.motion import load_profile
@@ -195,7 +209,9 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     chosen = [r for r in rows if r["stage"].startswith(f"planar blend t = {metrics['field.blend_planar']:.4g}")]
     assert chosen and chosen[-1]["collisions"] == 0
     assert chosen[-1]["overhang_area_fraction"] == pytest.approx(metrics["sf.overhang_area_fraction"], abs=1e-12)
-    assert "## Collision resolution" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "## Collision resolution" in report and "figures/collisions.png" in report
+    assert (out / "figures" / "collisions.png").is_file()
     assert metrics["field.objectives"] == "ca,sf"
     # the blend keeps part of the optimised field's gain unless it had to go all the way to planar layers
     if metrics["field.blend_planar"] < 1.0:

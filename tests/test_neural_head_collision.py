@@ -33,11 +33,12 @@ def test_head_depth_sign_is_the_exact_membership_of_the_motion_planner(rng):
     depth = head.depth(torch.from_numpy(offsets), torch.from_numpy(axes)).numpy()
     assert 0.01 < inside.mean() < 0.2
     np.testing.assert_array_equal(depth > 0, inside)
-    # inflating grows the head sideways and at the top, never below min_height
-    grown = head.depth(torch.from_numpy(offsets), torch.from_numpy(axes), 1.0).numpy() > 0
-    assert grown[inside].all() and grown.sum() > inside.sum()
+    # inflating grows the head sideways and at the top, never below min_height (even by more than the cone)
     h = np.einsum("ij,ij->i", offsets, axes)
-    assert not grown[h < 0.5].any()
+    for inflate in (1.0, 12.0):
+        grown = head.depth(torch.from_numpy(offsets), torch.from_numpy(axes), inflate).numpy() > 0
+        assert grown[inside].all() and grown.sum() > inside.sum()
+        assert not grown[h < 0.5].any()
 
 
 def test_lowest_rim_is_the_platform_clearance_of_the_motion_planner(rng):
@@ -48,14 +49,14 @@ def test_lowest_rim_is_the_platform_clearance_of_the_motion_planner(rng):
     np.testing.assert_allclose(np.minimum(low, 0.0), exact, atol=1e-9)
 
 
-def _box_problem(rng, n_points: int = 300):
+def _box_problem(rng, n_points: int = 300, clearance: float = 1.0):
     """A 20 mm box cage, a pool of points inside it and a curved field G (valleys that collide)."""
     V, T = box_tet_grid((5, 5, 5), np.zeros(3), np.full(3, 20.0))
     geometry = CageGeometry.build(V, T)
-    points = rng.uniform(1.0, 19.0, (n_points, 3))
+    points = rng.uniform([1.0, 1.0, 0.0], [19.0, 19.0, 19.0], (n_points, 3))  # some at the platform
     tet, bary = geometry.barycentric(points)
     head = HeadShape.from_nozzle(NOZZLE, 0.3)
-    gc = HeadCollision(points, tet, bary, geometry.tets, head, 0.0, clearance=1.0, order_margin=0.1,
+    gc = HeadCollision(points, tet, bary, geometry.tets, head, 0.0, clearance=clearance, order_margin=0.1,
                        length=2.0, margin=2.0, device=torch.device("cpu"), dtype=torch.float64)
     G = V[:, 2] + 3.0 * np.sin(V[:, 0] / 2.0)  # wavy layers: the holder hits the valleys' walls
     return geometry, gc, torch.tensor(G, dtype=torch.float64)
@@ -71,11 +72,14 @@ def test_gc_gradient_matches_finite_differences(rng):
         return gc.loss(g, field_gradient(g, tets, grads))
 
     assert float(loss(G)) > 0
+    pair, platform = gc.penalties(G, field_gradient(G, tets, grads))
+    assert (pair > 0).sum() > 10 and (platform > 0).sum() > 0   # both terms take part in the check
     assert torch.autograd.gradcheck(loss, (G.clone().requires_grad_(True),), eps=1e-6, atol=1e-7, rtol=1e-4)
 
 
-def test_gc_is_zero_for_planar_layers_and_counts_agree_with_its_pairs(rng):
-    geometry, gc, G = _box_problem(rng)
+@pytest.mark.parametrize("clearance", [1.0, 10.0])
+def test_gc_is_zero_for_planar_layers_and_counts_agree_with_its_pairs(rng, clearance):
+    geometry, gc, G = _box_problem(rng, clearance=clearance)
     tets, grads = torch.from_numpy(geometry.tets), torch.from_numpy(geometry.bary_grads)
     planar = torch.from_numpy(geometry.vertices[:, 2].copy())
     gc.refresh(planar, field_gradient(planar, tets, grads))

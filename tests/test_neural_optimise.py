@@ -50,10 +50,28 @@ class Killed(Exception):
     pass
 
 
-def test_kill_and_resume_follows_the_same_trajectory(problem):
+def _sphere_pool(spacing: float = 1.5):
+    """A grid of points inside the sphere of the problem fixture (L_GC's pool)."""
+    from neuralslicer.neural.head_collision import CollisionPool
+
+    axis = np.arange(1.0, 9.5, spacing)
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    return CollisionPool(grid[np.linalg.norm(grid - 5.0, axis=1) < 4.0], spacing)
+
+
+@pytest.mark.parametrize("gc", [False, True], ids=["sf", "sf+gc"])
+def test_kill_and_resume_follows_the_same_trajectory(problem, gc):
     cfg = _cfg(max_steps=20)
+    kw = {}
+    if gc:  # a small head, so that L_GC has pairs to follow
+        loss = {"w_gc": 1.0, "head": {"cone_half_angle_deg": 30, "cone_length": 2, "holder_radius": 2,
+                                      "holder_length": 4}, "head_min_height": 0.3}
+        data = cfg.model_dump()
+        data["loss"].update(loss)
+        cfg = NeuralConfig.model_validate(data)
+        kw["collision_pool"] = _sphere_pool()
     final: dict[str, bytes] = {}
-    full = _run(problem, cfg, save_checkpoint=lambda b, s: final.__setitem__("full", b))
+    full = _run(problem, cfg, save_checkpoint=lambda b, s: final.__setitem__("full", b), **kw)
     store: dict[int, bytes] = {}
 
     def save_then_die(blob: bytes, step: int) -> None:
@@ -62,10 +80,12 @@ def test_kill_and_resume_follows_the_same_trajectory(problem):
             raise Killed
 
     with pytest.raises(Killed):
-        _run(problem, cfg, save_checkpoint=save_then_die)
+        _run(problem, cfg, save_checkpoint=save_then_die, **kw)
     assert max(store) == 10
     resumed = _run(problem, cfg, load_checkpoint=lambda: store[10],
-                   save_checkpoint=lambda b, s: final.__setitem__("resumed", b))
+                   save_checkpoint=lambda b, s: final.__setitem__("resumed", b), **kw)
+    if gc:
+        assert np.any(full.history["gc"] > 0)
     assert resumed.steps == full.steps == 20
     a = torch.load(io.BytesIO(final["full"]), weights_only=False)["fields"]
     b = torch.load(io.BytesIO(final["resumed"]), weights_only=False)["fields"]

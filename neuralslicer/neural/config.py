@@ -82,7 +82,8 @@ class LossConfig(BaseModel):
         None, gt=0, description="pool spacing (mm; default: (solid volume / gc_points)^(1/3))")
     gc_clearance: float | None = Field(
         None, ge=0, description="head clearance of L_GC (mm; default: 1.5 x the pool spacing, which covers tips "
-        "and material between pool points and the smoothing of the tool axis along the toolpaths)")
+        "and material between pool points and the smoothing of the tool axis along the toolpaths, at most the "
+        "cone's length)")
     gc_order_margin: float = Field(
         0.1, ge=0, description="print-order margin of L_GC: x collides when G(x) < G(p) + margin")
 

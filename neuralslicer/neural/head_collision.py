@@ -13,7 +13,10 @@ at the top (> 0 inside; the bottom stays at ``min_height`` above the tip, where 
 layer lies under the nozzle). It is exactly zero
 for a collision-free field with its margins, and its gradient moves the head axis ``d_p`` (tilting
 the head away) and the print order ``G`` (printing ``x`` later or ``p`` earlier). The head's lowest
-point below the platform adds ``relu(clearance - (z_low - platform_z))^2``.
+point below the platform adds ``relu(c_p - (z_low - platform_z))^2`` with the platform clearance
+``c_p = min(clearance, cone_length / 2)`` (the platform is exact: only the tip between pool points
+and the tool axis blur it, and a vertical head at the platform, whose rim is ``cone_length`` above
+its tip, must stay free).
 
 The pairs of pool points within the head's reach of each other are found once (a KD-tree pair
 query); every ``refresh`` steps they are tested against the current field in vectorised chunks and
@@ -68,7 +71,8 @@ class HeadShape:
         cone = torch.minimum(torch.minimum(h - self.min_height, L + inflate - h), (h * ta - r) * ca + inflate)
         if self.holder_length <= 0:
             return cone
-        holder = torch.minimum(torch.minimum(h - L + inflate, L + self.holder_length + inflate - h),
+        bottom = max(L - inflate, self.min_height)
+        holder = torch.minimum(torch.minimum(h - bottom, L + self.holder_length + inflate - h),
                                self.holder_radius + inflate - r)
         return torch.maximum(cone, holder)
 
@@ -129,6 +133,7 @@ class HeadCollision:
         self.near = torch.as_tensor(np.concatenate([near, near[:, ::-1]]), device=device)
         self.head, self.platform_z = head, platform_z
         self.clearance, self.order_margin, self.length, self.margin = clearance, order_margin, length, margin
+        self.platform_clearance = min(clearance, 0.5 * head.cone_length)
         self.device, self.dtype = device, dtype
         self.tet = np.asarray(tets, np.int64)
         self.vertex_ids = torch.as_tensor(np.asarray(cage_tets, np.int64)[self.tet], device=device)
@@ -167,7 +172,7 @@ class HeadCollision:
         self.pairs = self._select(g, d, self.clearance + self.margin, -self.order_margin - self.margin)
         if self.platform_z is not None:
             clear = self.points_t[:, 2] + self.head.lowest(d) - self.platform_z
-            self.low_points = torch.nonzero(clear < self.clearance + self.margin).flatten()
+            self.low_points = torch.nonzero(clear < self.platform_clearance + self.margin).flatten()
         return int(len(self.pairs))
 
     def penalties(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -180,7 +185,7 @@ class HeadCollision:
         if self.platform_z is None or len(low) == 0:
             return pair, G.new_zeros(0)
         clear = self.points_t[low, 2] + self.head.lowest(d[low]) - self.platform_z
-        return pair, torch.relu(self.clearance - clear) ** 2
+        return pair, torch.relu(self.platform_clearance - clear) ** 2
 
     def loss(self, G: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
         """L_GC = (sum of pair and platform penalties) / (pool size * spacing^2), unit-free."""

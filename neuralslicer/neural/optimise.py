@@ -167,9 +167,9 @@ class FieldProblem:
             raise ValueError("the global collision term (w_gc > 0) needs a collision_pool of points in the solid")
         tet, bary = self.geometry.barycentric(pool.points)
         head = HeadShape.from_nozzle(cl.head, cl.head_min_height)
-        clearance = cl.gc_clearance if cl.gc_clearance is not None else 1.5 * pool.spacing
+        clearance = cl.gc_clearance if cl.gc_clearance is not None else min(1.5 * pool.spacing, cl.head.cone_length)
         return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
-                             cl.gc_order_margin, pool.spacing, pool.spacing, self.device, self.dtype)
+                             cl.gc_order_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype)
 
     def refresh_collisions(self, fields: DeformationFields) -> int:
         """Search the pairs near collision for the current weights (L_GC's active set); their number."""
@@ -643,15 +643,17 @@ def _optimise_field(
     # stall test see (roll-back steps leave it unchanged)
     if not trend:
         trend = _trend_of(history["total"], oc.trend_smoothing) if history["total"] else []
+    first = True  # a resumed run searches L_GC's pairs before its first step (checkpoints sit on check steps)
     while step < oc.max_steps and not converged:
-        if step % oc.check_every == 0:
-            if problem.head is not None:
-                problem.refresh_collisions(fields)
-                if best_state is not None:  # the best loss again, on the new pairs
-                    best_state["loss"] = loss_of(problem, fields, best_state["fields"])
-            if step > 0 and problem.constraints_met(fields):
-                converged, best_state = True, None  # this iterate is the result
-                break
+        check = step % oc.check_every == 0
+        if problem.head is not None and (check or first):
+            problem.refresh_collisions(fields)
+            if best_state is not None:  # the best loss again, on the new pairs
+                best_state["loss"] = loss_of(problem, fields, best_state["fields"])
+        first = False
+        if check and step > 0 and problem.constraints_met(fields):
+            converged, best_state = True, None  # this iterate is the result
+            break
         total, terms, n_corr, n_viol = corrected_evaluation(problem, fields)
         tv = float(total.detach())
         lr = optimizer.param_groups[0]["lr"]
