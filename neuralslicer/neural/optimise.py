@@ -256,9 +256,10 @@ class FieldProblem:
         return e.numpy()
 
     def constraints_met(self, fields: DeformationFields) -> bool:
-        """Support-free within ``optim.target_overhang`` (area fraction of B), no head collision
-        (none in the pool with the head grown by half its clearance) and L_CA = 0; never with a strength objective, which has no
-        satisfied state (always False when target_overhang is 0 or SF is off)."""
+        """Support-free within ``optim.target_overhang`` (area fraction of B) and no head collision
+        (none in the pool with the head grown by half its clearance); never with a strength objective,
+        which has no satisfied state (always False when target_overhang is 0 or SF is off). L_CA = 0 is
+        the caller's part: the DC3 correction before each evaluation reports it."""
         cl, oc = self.config.loss, self.config.optim
         if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
             return False
@@ -268,9 +269,6 @@ class FieldProblem:
             d = unit(grad[self.b_tet_t]).double().cpu().numpy()
             if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
                                       cl.alpha_deg) > oc.target_overhang:
-                return False
-            if cl.collision and violating_pairs(L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi),
-                                                cl.correction_tol):
                 return False
             return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
 
@@ -651,10 +649,10 @@ def _optimise_field(
             if best_state is not None:  # the best loss again, on the new pairs
                 best_state["loss"] = loss_of(problem, fields, best_state["fields"])
         first = False
-        if check and step > 0 and problem.constraints_met(fields):
-            converged, best_state = True, None  # this iterate is the result
-            break
         total, terms, n_corr, n_viol = corrected_evaluation(problem, fields)
+        if check and step > 0 and n_viol == 0 and problem.constraints_met(fields):
+            converged, best_state = True, None  # this (corrected) iterate is the result
+            break
         tv = float(total.detach())
         lr = optimizer.param_groups[0]["lr"]
         diverged = (oc.divergence_factor > 0 and best_state is not None
