@@ -56,7 +56,7 @@ def _box_problem(rng, n_points: int = 300, clearance: float = 1.0):
     points = rng.uniform([1.0, 1.0, 0.0], [19.0, 19.0, 19.0], (n_points, 3))  # some at the platform
     tet, bary = geometry.barycentric(points)
     head = HeadShape.from_nozzle(NOZZLE, 0.3)
-    gc = HeadCollision(points, tet, bary, geometry.tets, head, 0.0, clearance=clearance, order_margin=0.1,
+    gc = HeadCollision(points, tet, bary, geometry.tets, head, 0.0, clearance=clearance, lift=0.5,
                        length=2.0, margin=2.0, device=torch.device("cpu"), dtype=torch.float64)
     G = V[:, 2] + 3.0 * np.sin(V[:, 0] / 2.0)  # wavy layers: the holder hits the valleys' walls
     return geometry, gc, torch.tensor(G, dtype=torch.float64)

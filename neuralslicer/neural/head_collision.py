@@ -6,17 +6,20 @@ samples). A pool point ``x`` collides with the head at pool point ``p`` when it 
 placed at ``p`` along ``d_p`` (cone + holder, the geometry the motion planner's exact check uses)
 and is printed earlier, ``G(x) < G(p)``. Per pair the penalty is a product of two hinges,
 
-    c(p, x) = relu(s(x - p, d_p)) * relu(G(p) - G(x) + order_margin),
+    c(p, x) = relu(s(x - p - m d_p, d_p)) * relu((G(p) - G(x)) / |grad G(x)| + m),
 
 with ``s`` the (approximate) signed depth of ``x`` inside the head grown by a clearance sideways and
 at the top (> 0 inside; the bottom stays at ``min_height`` above the tip, where the previous
-layer lies under the nozzle). It is exactly zero
-for a collision-free field with its margins, and its gradient moves the head axis ``d_p`` (tilting
-the head away) and the print order ``G`` (printing ``x`` later or ``p`` earlier). The head's lowest
-point below the platform adds ``relu(c_p - (z_low - platform_z))^2`` with the platform clearance
-``c_p = min(clearance, cone_length / 2)`` (the platform is exact: only the tip between pool points
-and the tool axis blur it, and a vertical head at the platform, whose rim is ``cone_length`` above
-its tip, must stay free).
+layer lies under the nozzle), and ``m`` the front margin (mm): material between pool points is
+printed up to ``m`` ahead of the last pool point behind the front, so points up to ``m`` ahead count
+as printed, while the head is lifted by ``m`` along its axis so that a point straight ahead of the
+tip never does (for a locally planar field the two conditions exclude each other). It is exactly
+zero for a collision-free field with its margins, and its gradient moves the head axis ``d_p``
+(tilting the head away) and the print order ``G`` (printing ``x`` later or ``p`` earlier). The
+head's lowest point below the platform adds ``relu(c_p - (z_low - platform_z))^2`` with the
+platform clearance ``c_p = min(clearance, cone_length / 2)`` (the platform is exact: only the tip
+between pool points and the tool axis blur it, and a vertical head at the platform, whose rim is
+``cone_length`` above its tip, must stay free).
 
 The pairs of pool points within the head's reach of each other are found once (a KD-tree pair
 query); every ``refresh`` steps they are tested against the current field in vectorised chunks and
@@ -119,20 +122,20 @@ class HeadCollision:
     """L_GC on a fixed pool of points located in the cage (see the module docstring).
 
     points : (k,3) pool; tets : (k,) containing cage tet; bary : (k,4) barycentric coordinates;
-    cage_tets : (m,4); head; platform_z (None: no platform term); clearance (mm) and order_margin
-    (units of G) of the hinges; length : normalisation (the pool spacing); margin : how much
+    cage_tets : (m,4); head; platform_z (None: no platform term); clearance and lift (the front
+    margin ``m``) of the hinges, mm; length : normalisation (the pool spacing); margin : how much
     deeper than the hinges a pair may be outside and still be kept in the active set (mm and units
     of G alike).
     """
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, bary: np.ndarray, cage_tets: np.ndarray,
-                 head: HeadShape, platform_z: float | None, clearance: float, order_margin: float,
+                 head: HeadShape, platform_z: float | None, clearance: float, lift: float,
                  length: float, margin: float, device: torch.device, dtype: torch.dtype) -> None:
         self.points = np.asarray(points, np.float64)
-        near = cKDTree(self.points).query_pairs(head.reach + clearance + margin, output_type="ndarray")
+        near = cKDTree(self.points).query_pairs(head.reach + clearance + lift + margin, output_type="ndarray")
         self.near = torch.as_tensor(np.concatenate([near, near[:, ::-1]]), device=device)
         self.head, self.platform_z = head, platform_z
-        self.clearance, self.order_margin, self.length, self.margin = clearance, order_margin, length, margin
+        self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
         self.platform_clearance = min(clearance, 0.5 * head.cone_length)
         self.device, self.dtype = device, dtype
         self.tet = np.asarray(tets, np.int64)
@@ -146,30 +149,38 @@ class HeadCollision:
     def __len__(self) -> int:
         return len(self.points)
 
-    def values(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(G at the pool points (k,), unit LPD at the pool points (k,3)) from G at the cage
-        vertices (n,) and its per-tet gradient (m,3)."""
+    def values(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(G at the pool points (k,), unit LPD (k,3), |grad G| (k,)) from G at the cage vertices (n,)
+        and its per-tet gradient (m,3)."""
         g = (self.bary_t * G[self.vertex_ids]).sum(dim=1)
         d = grad[self.tet_t]
-        return g, d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        norm = d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        return g, d / norm, norm[:, 0]
 
-    def _select(self, g: torch.Tensor, d: torch.Tensor, inflate: float, order_min: float,
+    def _terms(self, pairs: torch.Tensor, g: torch.Tensor, d: torch.Tensor, norm: torch.Tensor,
+               inflate: float, lift: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """(depth of x in the head at p grown by inflate and lifted by lift along d_p, how far x is
+        printed before p in mm plus lift) per pair (p, x)."""
+        p, x = pairs[:, 0], pairs[:, 1]
+        depth = self.head.depth(self.points_t[x] - self.points_t[p] - lift * d[p], d[p], inflate)
+        return depth, (g[p] - g[x]) / norm[x] + lift
+
+    def _select(self, g: torch.Tensor, d: torch.Tensor, norm: torch.Tensor, inflate: float, lift: float,
                 chunk: int = 2_000_000) -> torch.Tensor:
-        """Pairs (p, x) within reach with x inside the head inflated by ``inflate`` at p and
-        G(p) - G(x) > order_min."""
+        """Pairs (p, x) within reach whose two terms are both positive."""
         out = []
         for start in range(0, len(self.near), chunk):
             pairs = self.near[start:start + chunk]
-            pairs = pairs[g[pairs[:, 0]] - g[pairs[:, 1]] > order_min]
-            p, x = pairs[:, 0], pairs[:, 1]
-            out.append(pairs[self.head.depth(self.points_t[x] - self.points_t[p], d[p], inflate) > 0])
+            pairs = pairs[(g[pairs[:, 0]] - g[pairs[:, 1]]) / norm[pairs[:, 1]] + lift > 0]
+            depth, _ = self._terms(pairs, g, d, norm, inflate, lift)
+            out.append(pairs[depth > 0])
         return torch.cat(out) if out else self.near[:0]
 
     @torch.no_grad()
     def refresh(self, G: torch.Tensor, grad: torch.Tensor) -> int:
         """Find the active pairs (near or in collision) for the current field; returns their number."""
-        g, d = self.values(G, grad)
-        self.pairs = self._select(g, d, self.clearance + self.margin, -self.order_margin - self.margin)
+        g, d, norm = self.values(G, grad)
+        self.pairs = self._select(g, d, norm, self.clearance + self.margin, self.lift + self.margin)
         if self.platform_z is not None:
             clear = self.points_t[:, 2] + self.head.lowest(d) - self.platform_z
             self.low_points = torch.nonzero(clear < self.platform_clearance + self.margin).flatten()
@@ -177,10 +188,9 @@ class HeadCollision:
 
     def penalties(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(per active pair c(p, x) (a,), per platform candidate penalty (b,)), differentiable."""
-        g, d = self.values(G, grad)
-        p, x = self.pairs[:, 0], self.pairs[:, 1]
-        depth = self.head.depth(self.points_t[x] - self.points_t[p], d[p], self.clearance)
-        pair = torch.relu(depth) * torch.relu(g[p] - g[x] + self.order_margin)
+        g, d, norm = self.values(G, grad)
+        depth, early = self._terms(self.pairs, g, d, norm, self.clearance, self.lift)
+        pair = torch.relu(depth) * torch.relu(early)
         low = self.low_points
         if self.platform_z is None or len(low) == 0:
             return pair, G.new_zeros(0)
@@ -197,8 +207,8 @@ class HeadCollision:
         """Collisions over the whole pool, with the head grown by ``inflate`` (no order margin):
         colliding (p, x) pairs (head samples in earlier material), pool points whose head hits
         something, and points whose head is below the platform."""
-        g, d = self.values(G, grad)
-        bad = self._select(g, d, inflate, 0.0)
+        g, d, norm = self.values(G, grad)
+        bad = self._select(g, d, norm, inflate, 0.0)
         hit = torch.zeros(len(self.points), dtype=torch.bool, device=self.device)
         hit[bad[:, 0]] = True
         n_pairs = len(bad)
