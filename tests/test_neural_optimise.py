@@ -64,8 +64,8 @@ def test_kill_and_resume_follows_the_same_trajectory(problem, gc):
     cfg = _cfg(max_steps=20)
     kw = {}
     if gc:  # a small head, so that L_GC has pairs to follow
-        loss = {"w_gc": 1.0, "head": {"cone_half_angle_deg": 30, "cone_length": 2, "holder_radius": 2,
-                                      "holder_length": 4}, "head_min_height": 0.3}
+        loss = {"w_gc": 1.0, "head": {"cone_half_angle_deg": 30, "cone_length": 1, "holder_radius": 6,
+                                      "holder_length": 6}, "head_min_height": 0.3}
         data = cfg.model_dump()
         data["loss"].update(loss)
         cfg = NeuralConfig.model_validate(data)

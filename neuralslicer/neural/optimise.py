@@ -172,13 +172,15 @@ class FieldProblem:
         return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
                              lift, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype)
 
-    def refresh_collisions(self, fields: DeformationFields) -> int:
-        """Search the pairs near collision for the current weights (L_GC's active set); their number."""
-        if self.head is None:
-            return 0
+    def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
+        """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
         with torch.no_grad():
             G, _, _ = self.height(fields)
-            return self.head.refresh(G, field_gradient(G, self.tets_t, self.bary_grads_t))
+            return G, field_gradient(G, self.tets_t, self.bary_grads_t)
+
+    def refresh_collisions(self, fields: DeformationFields) -> int:
+        """Search the pairs near collision for the current weights (L_GC's active set); their number."""
+        return 0 if self.head is None else self.head.refresh(*self.field(fields))
 
     def head_collisions(self, G: np.ndarray) -> dict[str, int]:
         """Collisions of the head over the whole pool for a field G (n,) at the cage vertices."""
@@ -264,14 +266,12 @@ class FieldProblem:
         cl, oc = self.config.loss, self.config.optim
         if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
             return False
-        with torch.no_grad():
-            G, _, _ = self.height(fields)
-            grad = field_gradient(G, self.tets_t, self.bary_grads_t)
-            d = unit(grad[self.b_tet_t]).double().cpu().numpy()
-            if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
-                                      cl.alpha_deg) > oc.target_overhang:
-                return False
-            return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
+        G, grad = self.field(fields)
+        d = unit(grad[self.b_tet_t]).double().cpu().numpy()
+        if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
+                                  cl.alpha_deg) > oc.target_overhang:
+            return False
+        return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
 
     def planar_lpd_satisfaction(self) -> dict[str, float]:
         """SF/SR satisfaction of planar layers (d = +z)."""
