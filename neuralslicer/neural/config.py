@@ -84,11 +84,10 @@ class LossConfig(BaseModel):
         None, ge=0, description="head clearance of L_GC (mm; default: 1.5 x the pool spacing, which covers tips "
         "and material between pool points and the smoothing of the tool axis along the toolpaths, at most the "
         "cone's length)")
-    gc_front_margin: float | None = Field(
-        None, ge=0,
+    gc_front_margin: float = Field(
+        0.1, ge=0,
         description="mm: pool points up to this far ahead of the printing front count as printed, with the head "
-        "lifted as far along its axis (so points straight ahead never do); covers the front between pool points "
-        "(default: half the pool spacing)")
+        "lifted as far along its axis (so points straight ahead never do)")
 
     correction_steps: int = Field(
         20, ge=0, description="max DC3 correction steps before one loss evaluation (stops when feasible)"

@@ -168,9 +168,8 @@ class FieldProblem:
         tet, bary = self.geometry.barycentric(pool.points)
         head = HeadShape.from_nozzle(cl.head, cl.head_min_height)
         clearance = cl.gc_clearance if cl.gc_clearance is not None else min(1.5 * pool.spacing, cl.head.cone_length)
-        lift = cl.gc_front_margin if cl.gc_front_margin is not None else 0.5 * pool.spacing
         return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
-                             lift, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype)
+                             cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype)
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
         """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
