@@ -165,9 +165,9 @@ class OptimConfig(BaseModel):
     )
     target_overhang: float = Field(
         1e-3, ge=0,
-        description="converged once the overhang area fraction of B is at most this, the head collides "
-        "nowhere (L_GC = 0) and L_CA = 0: the constraints are met (0: off; not with a strength "
-        "objective, which has no such state)")
+        description="converged once the overhang area fraction of B is at most this, no pool point's head "
+        "(grown by half the L_GC clearance) reaches earlier material or the platform, and the corrected step "
+        "has L_CA = 0: the constraints are met (0: off; not with a strength objective, which has no such state)")
     check_every: int = Field(
         10, ge=1, description="steps between searches for L_GC's pairs near collision and constraint checks")
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")

@@ -22,7 +22,7 @@ between pool points and the tool axis blur it, and a vertical head at the platfo
 ``cone_length`` above its tip, must stay free).
 
 The pairs of pool points within the head's reach of each other are found once (a KD-tree pair
-query); every ``refresh`` steps they are tested against the current field in vectorised chunks and
+query); every ``optim.check_every`` steps they are tested against the current field in vectorised chunks and
 those near collision (within generous margins) form the active set. Between refreshes only the
 active set is evaluated, so a step costs a few vector operations over the active pairs.
 """
@@ -123,9 +123,8 @@ class HeadCollision:
 
     points : (k,3) pool; tets : (k,) containing cage tet; bary : (k,4) barycentric coordinates;
     cage_tets : (m,4); head; platform_z (None: no platform term); clearance and lift (the front
-    margin ``m``) of the hinges, mm; length : normalisation (the pool spacing); margin : how much
-    deeper than the hinges a pair may be outside and still be kept in the active set (mm and units
-    of G alike).
+    margin ``m``) of the hinges, mm; length : normalisation (the pool spacing); margin : how far
+    (mm) outside both hinges a pair may be and still be kept in the active set.
     """
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, bary: np.ndarray, cage_tets: np.ndarray,
@@ -157,23 +156,24 @@ class HeadCollision:
         norm = d.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return g, d / norm, norm[:, 0]
 
-    def _terms(self, pairs: torch.Tensor, g: torch.Tensor, d: torch.Tensor, norm: torch.Tensor,
-               inflate: float, lift: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """(depth of x in the head at p grown by inflate and lifted by lift along d_p, how far x is
-        printed before p in mm plus lift) per pair (p, x)."""
+    def _depth(self, pairs: torch.Tensor, d: torch.Tensor, inflate: float, lift: float) -> torch.Tensor:
+        """Depth of x in the head at p, grown by inflate and lifted by lift along d_p, per pair (p, x)."""
         p, x = pairs[:, 0], pairs[:, 1]
-        depth = self.head.depth(self.points_t[x] - self.points_t[p] - lift * d[p], d[p], inflate)
-        return depth, (g[p] - g[x]) / norm[x] + lift
+        return self.head.depth(self.points_t[x] - self.points_t[p] - lift * d[p], d[p], inflate)
+
+    @staticmethod
+    def _early(pairs: torch.Tensor, g: torch.Tensor, norm: torch.Tensor, lift: float) -> torch.Tensor:
+        """How far (mm) x is printed before p, plus lift, per pair (p, x)."""
+        return (g[pairs[:, 0]] - g[pairs[:, 1]]) / norm[pairs[:, 1]] + lift
 
     def _select(self, g: torch.Tensor, d: torch.Tensor, norm: torch.Tensor, inflate: float, lift: float,
                 chunk: int = 2_000_000) -> torch.Tensor:
-        """Pairs (p, x) within reach whose two terms are both positive."""
+        """Pairs (p, x) within reach whose two hinge arguments are both positive."""
         out = []
         for start in range(0, len(self.near), chunk):
             pairs = self.near[start:start + chunk]
-            pairs = pairs[(g[pairs[:, 0]] - g[pairs[:, 1]]) / norm[pairs[:, 1]] + lift > 0]
-            depth, _ = self._terms(pairs, g, d, norm, inflate, lift)
-            out.append(pairs[depth > 0])
+            pairs = pairs[self._early(pairs, g, norm, lift) > 0]
+            out.append(pairs[self._depth(pairs, d, inflate, lift) > 0])
         return torch.cat(out) if out else self.near[:0]
 
     @torch.no_grad()
@@ -189,8 +189,8 @@ class HeadCollision:
     def penalties(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(per active pair c(p, x) (a,), per platform candidate penalty (b,)), differentiable."""
         g, d, norm = self.values(G, grad)
-        depth, early = self._terms(self.pairs, g, d, norm, self.clearance, self.lift)
-        pair = torch.relu(depth) * torch.relu(early)
+        pair = (torch.relu(self._depth(self.pairs, d, self.clearance, self.lift))
+                * torch.relu(self._early(self.pairs, g, norm, self.lift)))
         low = self.low_points
         if self.platform_z is None or len(low) == 0:
             return pair, G.new_zeros(0)
