@@ -137,7 +137,7 @@ def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
 def _slice(model: list[str], variant: str, strength: bool, extra: list[str], maps: dict) -> dict:
     """One CLI slice in a fresh folder: its metrics and wall time (and its collision map into maps)."""
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "neuralslicer.cli", "slice", *model, "--out", f"{tmp}/out",
+        cmd = [sys.executable, "-m", "cli", "slice", *model, "--out", f"{tmp}/out",
                "--objectives", _objectives(variant, strength), *VARIANTS[variant], *extra]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=REPO)

@@ -12,12 +12,13 @@ from prefect.states import State
 
 from neuralslicer.config import SliceConfig
 from neuralslicer.neural.config import NeuralConfig
-from neuralslicer.provenance import add_to_metrics, provenance, record_provenance
+from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
 from tasks.common import run_step
 from tasks.export import export_outputs
+from tasks.provenance import record_provenance
 from tasks.fea import fea_task, stress_samples_task, verify_task
 from tasks.steps import (
     blend_field_task,

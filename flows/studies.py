@@ -11,6 +11,7 @@ from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
+from flows.settings import cache_settings
 from flows.branch import Branch, load_branch_spec, make_user_field, study_branch
 from flows.study_report import write_study_outputs
 from neuralslicer.config import SliceConfig
@@ -124,6 +125,13 @@ def default_user_field(model: str, options: StudyOptions, path: Path) -> Path:
     return make_user_field(solid.bounds, path)
 
 
+def with_cage_elements(config: SliceConfig, n: int) -> SliceConfig:
+    """The configuration with another cage element count, validated (its limits apply)."""
+    data = config.model_dump()
+    data["cage"]["n_elements"] = int(n)
+    return SliceConfig.checked(data, "--cage-elements")
+
+
 def cage_branches(model: str, options: StudyOptions, cage_elements: list[int]) -> list[Branch]:
     """Branches of the cage-resolution study: one per cage element count."""
     if not cage_elements:
@@ -131,8 +139,7 @@ def cage_branches(model: str, options: StudyOptions, cage_elements: list[int]) -
     out, store = Path(options.out_dir), _store(options)
     branches = []
     for n in cage_elements:
-        cfg = options.config.model_copy(deep=True)
-        cfg.cage.n_elements = int(n)
+        cfg = with_cage_elements(options.config, n)
         branches.append(Branch(name=f"cage_{n}", model=model, up=options.up, config=cfg, out_dir=str(out / f"cage_{n}"),
                                store=store, parameters={"cage.n_elements": int(n)}))
     return branches
@@ -203,12 +210,5 @@ def slice_model(model: str, out_dir: str, up: str | None = None, store: str | No
     store_root = ArtifactStore(store or str(out / "store.zarr")).root
     cfg = config if isinstance(config, SliceConfig) else SliceConfig.model_validate(config or {})
     with ExitStack() as stack:
-        stack.enter_context(result_settings(store_root))
+        stack.enter_context(cache_settings(store_root))
         return slice_flow(spec=spec, out_dir=str(out), config=cfg, store=store_root)
-
-
-def result_settings(store: str) -> Any:
-    """Prefect settings that persist task results (cache records) beside the store (as `neuralslicer slice` does)."""
-    from neuralslicer.cli import cache_settings
-
-    return cache_settings(store)

@@ -61,9 +61,14 @@ class SliceConfig(BaseModel):
             raise InputError(path, f"not valid YAML: {exc}") from None
         if not isinstance(data, dict):
             raise InputError(path, "a configuration file must be a mapping of sections")
+        return cls.checked(data, str(path))
+
+    @classmethod
+    def checked(cls, data: dict, where: str) -> SliceConfig:
+        """Validate a configuration mapping; an error names `where` and the offending key."""
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
             err = exc.errors()[0]
             key = ".".join(str(p) for p in err["loc"])
-            raise InputError(f"{path}: {key}", err["msg"]) from None
+            raise InputError(f"{where}: {key}", err["msg"]) from None

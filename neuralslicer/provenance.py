@@ -15,6 +15,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from neuralslicer.fileio import write_json_atomic
+
 PACKAGES = (
     "neuralslicer", "numpy", "scipy", "torch", "trimesh", "pytetwild", "libigl", "zarr", "prefect",
     "prefect-dask", "dask", "distributed", "pyvista", "scikit-image", "potpourri3d", "pyamg", "pydantic",
@@ -146,26 +148,13 @@ def metrics_entries(record: dict[str, Any]) -> dict[str, Any]:
     return {f"provenance.{k}": v for k, v in flatten(keep).items() if not isinstance(v, (list, dict))}
 
 
-def record_provenance(out_dir: str | Path, store: str, model: str, record: dict[str, Any]) -> str:
-    """Write `out_dir/provenance.json` and the record in the store as `<model>/provenance/<digest>`; return the digest."""
-    from storage import ArtifactStore, write_json_atomic
-
-    stable = {k: v for k, v in record.items() if k not in ("recorded_at", "command")}
-    key = canonical_digest(stable)[:20]
-    write_json_atomic(Path(out_dir) / "provenance.json", {**record, "digest": key})
-    st = ArtifactStore(store)
-    path = f"{model}/provenance/{key}"
-    if not st.exists(path):
-        with st.lock(path):
-            if not st.exists(path):
-                st.write(path, {}, {"provenance": record})
-    return key
+def record_digest(record: dict[str, Any]) -> str:
+    """Content key of a record (time and command excluded): the same run gives the same key."""
+    return canonical_digest({k: v for k, v in record.items() if k not in ("recorded_at", "command")})[:20]
 
 
 def add_to_metrics(out_dir: str | Path, record: dict[str, Any]) -> None:
     """Merge the `provenance.*` entries into `out_dir/metrics.json` (atomic rewrite)."""
-    from storage import write_json_atomic
-
     path = Path(out_dir) / "metrics.json"
     metrics = json.loads(path.read_text()) if path.is_file() else {}
     metrics = {k: v for k, v in metrics.items() if not k.startswith("provenance.")}

@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-from storage.files import atomic_path  # noqa: E402
+from neuralslicer.fileio import atomic_path  # noqa: E402
 
 
 def _save(fig: plt.Figure, path: Path) -> None:

@@ -7,7 +7,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from storage.store import ArtifactRef, to_json
+from neuralslicer.fileio import to_json
+from storage.store import ArtifactRef
 
 
 def canonical(value: Any) -> Any:

@@ -2,18 +2,19 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import time
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
+
+from neuralslicer.fileio import to_json
 
 COMPLETE = "_complete"
 STAGING = "_staging"
@@ -31,23 +32,6 @@ class ArtifactRef:
     def model(self) -> str:
         """The model name (first component of the group path)."""
         return self.path.split("/", 1)[0]
-
-
-def to_json(value: Any) -> Any:
-    """Convert numpy scalars/arrays, paths and tuples to plain JSON values."""
-    if isinstance(value, Mapping):
-        return {str(k): to_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_json(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return to_json(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
 
 
 class ArtifactStore:
@@ -152,6 +136,20 @@ class ArtifactStore:
         arrays, _ = self.read(path, ["blob"])
         return arrays["blob"].tobytes()
 
+    def write_once(self, path: str, make: Callable[[], tuple[Mapping[str, np.ndarray], Mapping[str, Any]]],
+                   done: Callable[[], bool] | None = None) -> bool:
+        """Write the group ``make()`` returns at ``path`` unless ``done()`` (default: the group exists),
+        checked again under the path's lock; True if this call wrote it."""
+        done = done or (lambda: self.exists(path))
+        if done():
+            return False
+        with self.lock(path):
+            if done():
+                return False
+            arrays, attrs = make()
+            self.write(path, arrays, attrs)
+        return True
+
     @contextlib.contextmanager
     def lock(self, path: str, timeout_s: float = 600.0) -> Iterator[None]:
         """An exclusive lock on one artifact path across processes (O_EXCL lock file; no-op off local disk)."""
@@ -196,12 +194,3 @@ def _stale(lock_file: Path) -> bool:
     except PermissionError:
         return False
     return False
-
-
-def write_json_atomic(path: str | Path, data: Any) -> None:
-    """Write JSON to a file atomically (temp file + os.replace)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    tmp.write_text(json.dumps(to_json(data), indent=2, sort_keys=True))
-    os.replace(tmp, path)

@@ -99,16 +99,13 @@ def pipeline_task(
         def body(*args: Any, **kwargs: Any) -> ArtifactRef:
             params = pipeline.bind(public.bind(*args, **kwargs).arguments)
             out = pipeline.output(params)
-            store = ArtifactStore(out.store)
-            if pipeline.done(params):
-                return out
-            with store.lock(out.path):
-                if pipeline.done(params):
-                    return out
+
+            def make() -> tuple[dict, dict]:
                 start = time.perf_counter()
                 arrays, attrs = fn(out=out, **params)
-                attrs = {**attrs, "step": step, "wall_s": time.perf_counter() - start, "versions": versions()}
-                store.write(out.path, arrays, attrs)
+                return arrays, {**attrs, "step": step, "wall_s": time.perf_counter() - start, "versions": versions()}
+
+            ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))
             return out
 
         body.__signature__ = public  # type: ignore[attr-defined]

@@ -26,7 +26,7 @@ from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, write_text_atomic
 from tasks.common import pipeline_task
-from neuralslicer.motion.pipeline import write_print_outputs
+from neuralslicer.outputs import write_print_outputs
 from neuralslicer.toolpath.io import plot_toolpaths_png
 from tasks.steps import read_cage, read_collision_map, read_field, read_layers, read_print, read_samples
 

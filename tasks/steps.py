@@ -209,9 +209,5 @@ def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
         raise InputError(path, f"points {points.shape} and values {values.shape} do not match (p,3) and (p,)")
     key = digest("user_field", hashlib.sha256(points.tobytes() + values.tobytes()).hexdigest())
     ref = ArtifactStore(store).ref(f"{model}/user_field/{key}", key)
-    st = ArtifactStore(store)
-    if not st.exists(ref.path):
-        with st.lock(ref.path):
-            if not st.exists(ref.path):
-                st.write(ref.path, {"points": points, "values": values}, {"source": str(path)})
+    ArtifactStore(store).write_once(ref.path, lambda: ({"points": points, "values": values}, {"source": str(path)}))
     return ref

@@ -12,7 +12,8 @@ from neuralslicer.compare import compare_runs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
 from neuralslicer.model.spec import spec_for_file
-from neuralslicer.provenance import metrics_entries, provenance, record_provenance
+from neuralslicer.provenance import metrics_entries, provenance
+from tasks.provenance import record_provenance
 from storage import ArtifactStore
 from studies_common import torus_file
 
@@ -85,11 +86,11 @@ def test_compare_command_prints_a_table_and_exits_0(tmp_path: Path) -> None:
     a = _run_folder(tmp_path / "a", {"n_layers": 10, "sf.overhang_area_fraction": 0.25})
     b = _run_folder(tmp_path / "b", {"n_layers": 10, "sf.overhang_area_fraction": 0.125})
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
-    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(b)], cwd=REPO,
+    done = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(b)], cwd=REPO,
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "sf.overhang_area_fraction" in done.stdout and "0.25" in done.stdout and "0.125" in done.stdout
     assert "n_layers" not in done.stdout and "1 difference(s)" in done.stdout
-    bad = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(tmp_path / "x")],
+    bad = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(tmp_path / "x")],
                          cwd=REPO, capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "neuralslicer: error:" in bad.stderr

@@ -16,7 +16,7 @@ import trimesh
 import yaml
 
 from conftest import REPO, fast_config
-from neuralslicer.cli import main
+from cli.main import main
 
 pytestmark = pytest.mark.usefixtures("prefect_server")
 
@@ -93,7 +93,7 @@ def test_kill_and_resume(tmp_path, small_part):
     )
     out = tmp_path / "run"
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
-    cmd = [sys.executable, "-m", "neuralslicer.cli", *slice_cmd(small_part, out, cfg, "--objectives", "sf,po")]
+    cmd = [sys.executable, "-m", "cli", *slice_cmd(small_part, out, cfg, "--objectives", "sf,po")]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True)  # its own process group: the kill takes its Prefect server too
     ckpt_root = out / "store.zarr" / "lpart" / "checkpoints"

@@ -10,8 +10,9 @@ import pytest
 
 from neuralslicer.gcode import parse_gcode, quaternion_to_matrix, robot_table, write_gcode, write_robot_json
 from neuralslicer.motion import (PRINT, RETRACT, forward_kinematics, load_profile, plan_motion, plan_print,
-                                 program_metrics, write_print_outputs)
+                                 program_metrics)
 from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.outputs import write_print_outputs
 from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack
 
 

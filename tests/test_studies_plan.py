@@ -12,7 +12,7 @@ from tasks.steps import store_user_field
 from flows.dask_support import StudyDaskTaskRunner
 from flows.studies import StudyOptions, batch_branches, cage_branches, initial_guess_branches, task_runner
 from flows.study_report import markdown_table, table_rows
-from neuralslicer.cli import main as studies_main
+from cli.main import main as studies_main
 from neuralslicer.errors import InputError
 from neuralslicer.neural.initial_guess import user_field_on_cage
 from storage import ArtifactStore

@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _study_command(model: Path, out: Path, store: Path, config: Path) -> list[str]:
     """The study command run by the test (sequential branches: height first, then heat)."""
-    return [sys.executable, "-m", "neuralslicer.cli", "study", "initial-guess", str(model), "--kinds",
+    return [sys.executable, "-m", "cli", "study", "initial-guess", str(model), "--kinds",
             "height,heat", "--out", str(out), "--store", str(store), "--config", str(config), "--workers", "1"]
 
 

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from neuralslicer.fea.solver import FEAResult
-from storage.files import atomic_path, write_text_atomic
+from neuralslicer.fileio import atomic_path, write_text_atomic
 
 
 def to_vtk(result: FEAResult, cell_data: dict[str, np.ndarray] | None = None) -> Any:

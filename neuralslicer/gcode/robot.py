@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.files import atomic_path
+from neuralslicer.fileio import atomic_path
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from neuralslicer.motion.planning import TRAVEL, MachineProgram, program_metrics
-from storage.files import atomic_path
+from neuralslicer.fileio import atomic_path
 
 MIN_MOVE_S = 1e-4
 

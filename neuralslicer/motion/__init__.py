@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from neuralslicer.motion.collision import CollisionReport, check_collisions, platform_clearance
 from neuralslicer.motion.kinematics import forward_kinematics, inverse_kinematics, machine_position
-from neuralslicer.motion.pipeline import plan_print, write_print_outputs
+from neuralslicer.motion.pipeline import plan_print
 from neuralslicer.motion.planning import (PRINT, RETRACT, TRAVEL, MachineProgram, auto_part_offset, plan_motion,
                                           program_metrics)
 from neuralslicer.motion.profile import MachineProfile, load_profile, profile_names
@@ -12,5 +12,4 @@ __all__ = [
     "CollisionReport", "MachineProfile", "MachineProgram", "PRINT", "RETRACT", "TRAVEL", "auto_part_offset",
     "check_collisions", "forward_kinematics", "inverse_kinematics", "load_profile", "machine_position",
     "plan_motion", "plan_print", "platform_clearance", "profile_names", "program_metrics",
-    "write_print_outputs",
 ]

@@ -1,7 +1,6 @@
 """One entry point from curved layers to machine programs and files (SPEC steps 11-12)."""
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -14,8 +13,6 @@ from neuralslicer.motion.planning import MachineProgram, plan_motion, program_me
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
-from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
-from storage.files import atomic_path
 from neuralslicer.toolpath.types import Toolpaths
 
 
@@ -58,29 +55,3 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     metrics["timings_s"] = {"toolpaths": t1 - t0, "motion": t2 - t1, "collisions": t3 - t2}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
-
-
-def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
-                        *, robot: bool = False, vtp: bool = True, png: bool = True) -> dict[str, Path]:
-    """Write ``toolpaths/waypoints.csv``, ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
-    ``robot_waypoints.csv``/``.json`` (if ``robot``) and ``print_metrics.json`` under ``out_dir``."""
-    from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
-    from neuralslicer.gcode.writers import write_gcode
-
-    out = Path(out_dir)
-    files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp),
-             "gcode": write_gcode(out / "print.gcode", program)}
-    if vtp:
-        files["vtp"] = write_toolpaths_vtp(out / "toolpaths.vtp", tp)
-    if png:
-        files["png"] = plot_toolpaths_png(out / "toolpaths.png", tp)
-    if robot:
-        d = program.profile.extrusion.filament_diameter
-        files["robot_csv"] = write_robot_csv(out / "robot_waypoints.csv", tp, d)
-        files["robot_json"] = write_robot_json(out / "robot_waypoints.json", tp, d)
-    if metrics is not None:
-        p = out / "print_metrics.json"
-        with atomic_path(p) as tmp:
-            tmp.write_text(json.dumps(metrics, indent=2, default=float))
-        files["metrics"] = p
-    return files

@@ -7,7 +7,7 @@ import numpy as np
 
 from neuralslicer.errors import InputError
 from neuralslicer.toolpath.types import Toolpaths
-from storage.files import atomic_path
+from neuralslicer.fileio import atomic_path
 
 CSV_COLUMNS = ("layer", "path", "x", "y", "z", "nx", "ny", "nz", "thickness", "width", "extrude")
 

@@ -5,8 +5,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
+from flows.settings import cache_settings, prefect_environment
 from neuralslicer.errors import InputError
-from neuralslicer.frames import UP_AXES
 
 
 def parse_counts(text: str) -> list[int]:
@@ -20,39 +21,25 @@ def parse_counts(text: str) -> list[int]:
     return counts
 
 
-def study_config(args: argparse.Namespace) -> Any:
-    """The shared SliceConfig of a study: --config, then the explicit options (as `neuralslicer slice` builds it)."""
-    from neuralslicer.cli import build_config, make_parser
-
-    defaults = make_parser().parse_args(["slice", "model", "--out", "out"])  # every slice option at its default
-    for key in ("config", "layer_height", "objectives", "max_steps", "network", "device", "seed"):
-        setattr(defaults, key, getattr(args, key))
-    defaults.cage_elements = getattr(args, "cage_elements_single", None)
-    return build_config(defaults)
-
-
 def cmd_study(args: argparse.Namespace) -> int:
     """Run a study and print its table."""
-    from neuralslicer.cli import prefect_environment, run_in_out_dir
-
     out_dir = Path(args.out).resolve()
-    config = study_config(args)
+    config = build_config(args)
     models = args.models if args.study == "batch" else [args.model]
     for m in models:
         if not Path(m).exists():
             raise InputError(m, "no such file")
     if args.dask is not None and args.dask != "local" and "://" not in args.dask and ":" not in args.dask:
         raise InputError("--dask", f"{args.dask!r}: give a scheduler address (tcp://host:8786) or 'local'")
-    counts = parse_counts(args.cage_elements) if args.study == "cages" else None
+    counts = parse_counts(args.cage_counts) if args.study == "cages" else None
     if args.study == "initial-guess" and config.objectives is not None and not config.objectives:
         raise InputError("--objectives", "the initial-guess study optimises: give objectives (e.g. sf,po), not none")
     if args.study == "initial-guess" and args.user_field is not None and not Path(args.user_field).is_file():
         raise InputError(args.user_field, "no such file (--user-field takes an .npz with points and values)")
 
     def job() -> int:
-        prefect_environment(out_dir)
+        prefect_environment()
         from flows.studies import batch_study, cage_study, initial_guess_study
-        from neuralslicer.cli import cache_settings
         from storage import ArtifactStore
 
         store = ArtifactStore(args.store or str(out_dir / "store.zarr")).root
@@ -97,19 +84,9 @@ def print_study(study: dict[str, Any]) -> None:
     console.print(f"study: {study['out_dir']}/study.md, study.json ({study['wall_s']:.1f} s)")
 
 
-def _slicing_options(p: argparse.ArgumentParser) -> None:
+def _study_options(p: argparse.ArgumentParser) -> None:
     """The slicing options a study shares across its branches, and the engine options."""
-    p.add_argument("--out", required=True, help="study folder (study.md, study.json, one folder per branch)")
-    p.add_argument("--up", choices=UP_AXES, default=None, help="the model's up axis (default z, or the spec's)")
-    p.add_argument("--config", default=None, help="YAML configuration (sections: samples, cage, neural, layers)")
-    p.add_argument("--objectives", default=None,
-                   help="comma list of sf, sr, po, gc, ca, or none (default sf,po,gc,ca[,sr])")
-    p.add_argument("--max-steps", type=int, default=None, help="optimisation step budget")
-    p.add_argument("--layer-height", type=float, default=None, help="target layer thickness in mm")
-    p.add_argument("--network", choices=("default", "paper", "small"), default=None, help="network size preset")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device (default auto)")
-    p.add_argument("--seed", type=int, default=None, help="random seed of the optimisation")
-    p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
+    add_slicing_options(p, "study folder (study.md, study.json, one folder per branch)")
     p.add_argument("--dask", default=None, metavar="ADDRESS|local",
                    help="run the branches on a Dask cluster: a scheduler address or 'local' (a LocalCluster)")
     p.add_argument("--dask-workers", type=int, default=2, help="workers of a --dask local cluster (default 2)")
@@ -118,8 +95,6 @@ def _slicing_options(p: argparse.ArgumentParser) -> None:
 
 def add_study_parser(sub: Any) -> None:
     """Options of `neuralslicer study initial-guess|cages|batch`."""
-    from neuralslicer.cli import ArgumentParser
-
     p = sub.add_parser("study", help="studies fanned out over initial guesses, cage resolutions or models")
     studies = p.add_subparsers(dest="study", required=True, parser_class=ArgumentParser)
     ig = studies.add_parser("initial-guess", help="one model with the height, heat and a user-field initial guess")
@@ -127,16 +102,16 @@ def add_study_parser(sub: Any) -> None:
     ig.add_argument("--kinds", default="height,heat,user", help="initial guesses to compare (default height,heat,user)")
     ig.add_argument("--user-field", default=None,
                     help=".npz with points (p,3, build frame) and values (p,); default: a generated smooth field")
-    _slicing_options(ig)
+    _study_options(ig)
     cg = studies.add_parser("cages", help="one model at several cage element counts")
     cg.add_argument("model", help="mesh, volume mesh (.tet) or model spec (.yaml)")
-    cg.add_argument("--cage-elements", required=True, help="comma list of element counts, e.g. 4000,8000,16000")
-    _slicing_options(cg)
+    cg.add_argument("--cage-elements", dest="cage_counts", required=True, help="comma list of element counts, e.g. 4000,8000,16000")
+    _study_options(cg)
     bt = studies.add_parser("batch", help="several models or specs with one configuration")
     bt.add_argument("models", nargs="+", help="meshes, volume meshes or model specs")
-    bt.add_argument("--cage-elements", dest="cage_elements_single", type=int, default=None,
+    bt.add_argument("--cage-elements", type=int, default=None,
                     help="target number of cage tets for every model")
-    _slicing_options(bt)
+    _study_options(bt)
     for q in (ig, cg, bt):
         q.set_defaults(func=cmd_study)
 

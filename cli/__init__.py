@@ -1,0 +1,1 @@
+"""The `neuralslicer` command line: parses options, validates input, starts the flows (outside the core)."""

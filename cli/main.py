@@ -1,0 +1,161 @@
+"""The command line: `neuralslicer slice | fea | study | compare` (outside the core: it starts the flows)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
+from cli.studies import add_compare_parser, add_study_parser
+from flows.settings import cache_settings, prefect_environment
+from neuralslicer.errors import InputError, NeuralSlicerError
+from neuralslicer.frames import UP_AXES
+
+
+def validate_model(spec: Any) -> None:
+    """Read every file of the spec before any output is made: bad input fails here with one line."""
+    from neuralslicer.model.solid import implicit_solid
+
+    implicit_solid(spec)
+
+
+def cmd_slice(args: argparse.Namespace) -> int:
+    """Slice a model (mesh, .tet or spec YAML) into curved layers and write the output contract."""
+    from neuralslicer.model.spec import spec_for_file
+
+    model = Path(args.model)
+    if not model.exists():
+        raise InputError(model, "no such file")
+    spec = spec_for_file(model, args.up or "z")
+    if args.up is not None and spec.up != args.up:
+        spec = spec.model_copy(update={"up": args.up})
+    config = build_config(args)
+    validate_model(spec)
+    if args.init not in (None, "height", "heat") and not Path(args.init).is_file():
+        raise InputError(args.init, "no such file (--init takes height, heat or a file of field values)")
+    out_dir = Path(args.out).resolve()
+    store = str(args.store or out_dir / "store.zarr")
+    return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args))
+
+
+def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse.Namespace) -> int:
+    """Run the slicing flow and print its summary."""
+    prefect_environment()
+    from flows.slice import ensure_store, slice_flow
+
+    store = ensure_store(store)
+    with cache_settings(store):
+        user_field = args.init if args.init not in (None, "height", "heat") else None
+        summary = slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store, user_field=user_field)
+    print_summary(summary)
+    return 0
+
+
+def print_summary(summary: dict[str, Any]) -> None:
+    """The tasks' states and where the results are."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(stderr=False)
+    table = Table(title="neuralslicer slice")
+    table.add_column("task")
+    table.add_column("state")
+    for row in summary["tasks"]:
+        style = "green" if row["state"] == "Cached" else "cyan"
+        table.add_row(row["task"], f"[{style}]{row['state']}[/{style}]")
+    console.print(table)
+    cached = sum(r["state"] == "Cached" for r in summary["tasks"])
+    console.print(f"{cached}/{len(summary['tasks'])} tasks cached, {summary['wall_s']:.1f} s")
+    console.print(f"results: {summary['out_dir']}  (report.md, metrics.json, layers/, field.vtu, model.ply)")
+
+
+def cmd_fea(args: argparse.Namespace) -> int:
+    """Isotropic voxel FEA of a model spec alone: DIR/fea.vtu, DIR/metrics.json, a stress picture."""
+    from neuralslicer.fea import run_fea, write_fea_outputs
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+
+    path = Path(args.spec)
+    if not path.exists():
+        raise InputError(path, "no such file")
+    spec = spec_for_file(path, args.up or "z")
+    if args.up is not None:
+        spec = spec.model_copy(update={"up": args.up})
+    if spec.fea is None:
+        raise InputError(path, "the spec has no 'fea' block (material, supports, loads)")
+    fea = spec.fea if args.voxels is None else spec.fea.model_copy(update={"voxels": args.voxels})
+    out_dir = Path(args.out).resolve()
+
+    def job() -> int:
+        try:
+            result = run_fea(implicit_solid(spec), fea)
+        except InputError as exc:
+            if exc.where.startswith("fea"):
+                raise InputError(f"{path}: {exc.where}", exc.message) from None
+            raise
+        metrics = write_fea_outputs(result, out_dir)
+        for key in ("fea.max_displacement_mm", "fea.max_von_mises_mpa"):
+            print(f"{key}: {metrics[key]:.6g}")
+        print(f"results: {out_dir}  (fea.vtu, metrics.json, fea_von_mises.png)")
+        return 0
+
+    return run_in_out_dir(out_dir, job)
+
+
+def add_fea_parser(sub: Any) -> None:
+    """Options of `neuralslicer fea`."""
+    p = sub.add_parser("fea", help="isotropic voxel FEA of a model spec (stresses, principal directions)")
+    p.add_argument("spec", help="model spec (.yaml) with an fea block")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--up", choices=UP_AXES, default=None, help="override the spec's up axis")
+    p.add_argument("--voxels", type=int, default=None, help="target voxel count (default from the spec, 100000)")
+    p.set_defaults(func=cmd_fea)
+
+
+def add_slice_parser(sub: Any) -> None:
+    """Options of `neuralslicer slice`."""
+    p = sub.add_parser("slice", help="slice a model into curved layers")
+    p.add_argument("model", help="mesh (STL/OBJ/PLY/OFF), volume mesh (.tet, meshio formats) or model spec (.yaml)")
+    add_slicing_options(p)
+    p.add_argument("--cage-elements", type=int, default=None, help="target number of cage tets (default 10000)")
+    p.add_argument("--init", default=None, help="initial guess: height, heat or a file of values (default height)")
+    p.set_defaults(func=cmd_slice)
+
+
+def make_parser() -> ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = ArgumentParser(prog="neuralslicer", description="Curved layers for multi-axis 3D printing (Neural Slicer).")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
+    add_slice_parser(sub)
+    add_fea_parser(sub)
+    add_study_parser(sub)
+    add_compare_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `neuralslicer` command."""
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        if args.debug:
+            raise
+        print(f"neuralslicer: error: {exc.where}: {exc.message}", file=sys.stderr)
+        return 2
+    except NeuralSlicerError as exc:
+        if args.debug:
+            raise
+        print(f"neuralslicer: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

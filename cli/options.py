@@ -1,0 +1,106 @@
+"""The options every slicing subcommand shares, declared once, and the configuration they build."""
+from __future__ import annotations
+
+import argparse
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import NoReturn
+
+from neuralslicer.config import SliceConfig
+from neuralslicer.errors import InputError
+from neuralslicer.frames import UP_AXES
+from neuralslicer.neural.config import NETWORK_PRESETS
+
+OBJECTIVES = ("sf", "sr", "po", "gc", "ca")
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with one-line errors and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print `neuralslicer: error: ...` and exit 2."""
+        self.exit(2, f"neuralslicer: error: {message} (see '{self.prog} --help')\n")
+
+
+def parse_objectives(text: str) -> list[str]:
+    """`sf,po` -> ['sf', 'po']; `none` -> [] (the height field, planar layers)."""
+    if text.strip().lower() in ("none", ""):
+        return []
+    items = [t.strip().lower() for t in text.split(",") if t.strip()]
+    bad = [t for t in items if t not in OBJECTIVES]
+    if bad:
+        raise InputError("--objectives", f"unknown objective(s) {', '.join(bad)}; use a comma list of "
+                         f"{', '.join(OBJECTIVES)} or 'none'")
+    return items
+
+
+def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output folder") -> None:
+    """The options of a slice that `slice` and every study share (the configuration and where it goes)."""
+    p.add_argument("--out", required=True, help=out_help)
+    p.add_argument("--up", choices=UP_AXES, default=None, help="the model's up axis (default z, or the spec's)")
+    p.add_argument("--config", default=None, help="YAML configuration (sections: samples, cage, neural, layers, ...)")
+    p.add_argument("--layer-height", type=float, default=None, help="target layer thickness in mm (default 0.8)")
+    p.add_argument("--objectives", default=None,
+                   help="comma list of sf, sr, po, gc (global head collision), ca (local collision constraint), "
+                        "or none (default sf,po,gc,ca[,sr])")
+    p.add_argument("--max-steps", type=int, default=None, help="optimisation step budget")
+    p.add_argument("--network", choices=tuple(NETWORK_PRESETS), default=None, help="network size preset")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device (default auto)")
+    p.add_argument("--seed", type=int, default=None, help="random seed of the optimisation")
+    p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
+    p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
+    p.add_argument("--robot", action="store_true", help="also write robot_waypoints.csv/.json")
+    p.add_argument("--collision-retries", type=int, default=None,
+                   help="re-optimise with smoother fields while the nozzle collides (default 2)")
+    p.add_argument("--collision-fallback", choices=("blend", "none"), default=None,
+                   help="still colliding: blend the field toward planar layers until collision-free (default blend) "
+                        "or keep the colliding program")
+    p.add_argument("--verify", action="store_true", help="anisotropic FEA of planar vs computed layers (spec needs fea)")
+
+
+# option -> its key in the configuration
+CONFIG_KEYS = {
+    "layer_height": ("layers", "layer_height"),
+    "max_steps": ("neural", "optim", "max_steps"),
+    "network": ("neural", "network"),
+    "device": ("neural", "device"),
+    "seed": ("neural", "optim", "seed"),
+    "collision_retries": ("collision_retries",),
+    "collision_fallback": ("collision_fallback",),
+    "machine": ("machine",),
+    "cage_elements": ("cage", "n_elements"),
+}
+
+
+def build_config(options: argparse.Namespace) -> SliceConfig:
+    """SliceConfig from --config, overridden by the explicit command-line options, validated."""
+    cfg = SliceConfig.from_yaml(options.config) if options.config else SliceConfig()
+    data = cfg.model_dump()
+    for name, keys in CONFIG_KEYS.items():
+        value = getattr(options, name, None)
+        if value is not None:
+            node = data
+            for k in keys[:-1]:
+                node = node[k]
+            node[keys[-1]] = value
+    if options.objectives is not None:
+        data["objectives"] = parse_objectives(options.objectives)
+    for flag in ("verify", "robot"):
+        if getattr(options, flag, False):
+            data[flag] = True
+    init = getattr(options, "init", None)
+    if init is not None:
+        data["neural"]["init"]["kind"] = init if init in ("height", "heat") else "user"
+    return SliceConfig.checked(data, "options")
+
+
+def run_in_out_dir(out_dir: Path, job: Callable[[], int]) -> int:
+    """Run a job that writes into out_dir; on bad input remove out_dir again if this run created it."""
+    existed = out_dir.exists()
+    try:
+        return job()
+    except InputError:
+        if not existed:
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise
