@@ -122,7 +122,7 @@ def _objectives(variant: str, strength: bool) -> str:
 def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
     """Waypoints and collision flags of the printed program (the print whose counts match the metrics)."""
     from storage import ArtifactStore, ArtifactRef
-    from tasks.steps import read_collision_map
+    from tasks.codec import read_collision_map
 
     st = ArtifactStore(store)
     for group in sorted(store.glob("*/toolpaths/*")):

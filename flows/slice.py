@@ -14,23 +14,16 @@ from neuralslicer.config import SliceConfig
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
+from neuralslicer.scalar_field import smallest_clean_blend
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
+from tasks.codec import n_collisions, store_user_field
 from tasks.common import run_step
-from tasks.export import export_outputs
-from tasks.provenance import record_provenance
+from tasks.export import export_task
 from tasks.fea import fea_task, stress_samples_task, verify_task
-from tasks.steps import (
-    blend_field_task,
-    load_model,
-    make_cage,
-    make_layers,
-    optimise_field_task,
-    plan_print_task,
-    sample_surface,
-    solid_surface,
-    store_user_field,
-)
+from tasks.provenance import record_provenance
+from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, samples_task, solid_task,
+                         toolpaths_task)
 
 
 @dataclass
@@ -59,46 +52,37 @@ def smoother(config: NeuralConfig, factor: float) -> NeuralConfig:
     return config.model_copy(update={"loss": loss})
 
 
-def n_collisions(printing: ArtifactRef) -> int:
-    """Colliding waypoints of a stored print."""
-    return int(ArtifactStore(printing.store).attrs(printing.path)["metrics"].get("n_collisions", 0))
-
-
 def blend_until_collision_free(
     log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef, config: SliceConfig,
     machine: MachineProfile, attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
 ) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
-    """The smallest blend t of the field toward planar layers ((1-t) G + t z) whose print is collision-free.
-
-    Bisection on t in (0, 1] for `collision_blend_steps` steps; planar layers (t = 1) print bottom-up with a
-    vertical nozzle, so they are collision-free and end the search when no smaller t is. Every blend tried is
-    appended to `attempts` as (label, field, print).
-    """
+    """The smallest blend t of the field toward planar layers ((1-t) G + t z) whose print is collision-free
+    (`smallest_clean_blend`, `collision_blend_steps` bisection steps; planar layers when no smaller t is).
+    Every blend tried is appended to `attempts` as (label, field, print)."""
     logger = get_run_logger()
-    lo, hi, best = 0.0, 1.0, None
-    for _ in range(config.collision_blend_steps):
-        t = 0.5 * (lo + hi)
-        result = _blended_print(log, store, model, cage, field_ref, config, machine, t)
-        n = n_collisions(result[2])
-        attempts.append((f"planar blend t = {t:.4g}", result[0], result[2]))
-        logger.warning("planar blend %.3g: %d nozzle collisions", t, n)
-        if n == 0:
-            hi, best = t, result
-        else:
-            lo = t
-    if best is None:
-        best = _blended_print(log, store, model, cage, field_ref, config, machine, 1.0)
-        attempts.append(("planar blend t = 1 (planar layers)", best[0], best[2]))
-        logger.warning("planar layers: %d nozzle collisions", n_collisions(best[2]))
-    return best
+    prints: dict[float, tuple[ArtifactRef, ArtifactRef, ArtifactRef]] = {}
+
+    def collisions(t: float) -> int:
+        """Print the blend t and count its collisions."""
+        prints[t] = _blended_print(log, store, model, cage, field_ref, config, machine, t)
+        n = n_collisions(prints[t][2])
+        label = "planar blend t = 1 (planar layers)" if t == 1.0 else f"planar blend t = {t:.4g}"
+        attempts.append((label, prints[t][0], prints[t][2]))
+        logger.warning("%s: %d nozzle collisions", label, n)
+        return n
+
+    t = smallest_clean_blend(collisions, config.collision_blend_steps)
+    if t not in prints:
+        collisions(t)
+    return prints[t]
 
 
 def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef,
                    config: SliceConfig, machine: MachineProfile, t: float) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
     """Blend, layers and print for one blend weight t."""
-    blended = log.run(blend_field_task, store=store, cage=cage, field=field_ref, planar=t)
-    layers = log.run(make_layers, store=store, model=model, cage=cage, field=blended, config=config.layers)
-    printing = log.run(plan_print_task, store=store, model=model, layers=layers, config=config.toolpath,
+    blended = log.run(field_blend_task, store=store, cage=cage, field=field_ref, planar=t)
+    layers = log.run(layers_task, store=store, model=model, cage=cage, field=blended, config=config.layers)
+    printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
                        machine=machine)
     return blended, layers, printing
 
@@ -130,10 +114,10 @@ def slice_pipeline(
     log = RunLog()
     objectives = config.objectives if config.objectives is not None else default_objectives(spec)
     name = model_name(spec)
-    model = log.run(load_model, store=store, name=name, spec=spec, content=spec_digest(spec))
-    solid = log.run(solid_surface, store=store, model=model)
-    samples = log.run(sample_surface, store=store, model=model, config=config.samples)
-    cage = log.run(make_cage, store=store, model=model, samples=samples, config=config.cage)
+    model = log.run(model_task, store=store, name=name, spec=spec, content=spec_digest(spec))
+    solid = log.run(solid_task, store=store, model=model)
+    samples = log.run(samples_task, store=store, model=model, config=config.samples)
+    cage = log.run(cage_task, store=store, model=model, samples=samples, config=config.cage)
     fea = stress = verify = None
     if "sr" in objectives or config.verify:
         fea = log.run(fea_task, store=store, model=model)
@@ -146,12 +130,12 @@ def slice_pipeline(
     attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
     for attempt in range(config.collision_retries + 1):
         field_ref = log.run(
-            optimise_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
+            field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
             objectives=objectives, config=neural, user_field=user,
         )
-        layers = log.run(make_layers, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
+        layers = log.run(layers_task, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
         printing = log.run(
-            plan_print_task, store=store, model=model, layers=layers, config=config.toolpath, machine=machine
+            toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath, machine=machine
         )
         factor = config.collision_smoothness_factor ** attempt
         attempts.append(("optimised" if attempt == 0 else f"re-optimised, harmonic x{factor:g} + CA", field_ref, printing))
@@ -169,7 +153,7 @@ def slice_pipeline(
     if config.verify:
         verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
     log.run(
-        export_outputs, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
+        export_task, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,
         alpha_deg=config.alpha_deg,
         beta_deg=config.neural.loss.beta_deg,

@@ -12,7 +12,9 @@ from pydantic import BaseModel, Field
 from skimage.measure import marching_cubes
 
 from neuralslicer.errors import NeuralSlicerError
+from neuralslicer.model.solid import Solid
 from neuralslicer.tetmesh import TetLocator, boundary_faces, orient_tets, tet_volumes
+from neuralslicer.topology import tet_boundary_genus
 
 # fTetWild's envelope (how far its boundary may move from the offset surface), as a fraction of the edge
 ENVELOPE = 0.25
@@ -49,6 +51,10 @@ class Cage:
     def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Cage:
         """Rebuild from store arrays."""
         return cls(arrays["vertices"], arrays["tets"].astype(np.int64), attrs["offset"], attrs["edge_length"])
+
+    def summary(self) -> dict[str, float | int]:
+        """Genus of the cage boundary and the cage volume (mm^3), for the record."""
+        return {"genus": tet_boundary_genus(self.tets), "volume_mm3": float(tet_volumes(self.vertices, self.tets).sum())}
 
     def surface(self) -> trimesh.Trimesh:
         """The cage boundary as a triangle mesh."""
@@ -128,6 +134,13 @@ def build_cage(
             return cage
         offset += h
     raise NeuralSlicerError(f"cage: {len(missing)} points of the solid remain outside the cage after 4 offsets")
+
+
+def make_cage(solid: Solid, surface_points: np.ndarray, config: CageConfig) -> Cage:
+    """The cage step: a cage around the solid at the target element count, verified to contain the
+    surface samples and random interior points (seeded by ``config.seed``)."""
+    check = np.concatenate([surface_points, interior_points(solid.H, solid.bounds, 20_000, config.seed)])
+    return build_cage(solid.H, solid.bounds, solid.volume(), config, check)
 
 
 def interior_points(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, n: int, seed: int = 0) -> np.ndarray:

@@ -1,15 +1,228 @@
-"""The files a print is delivered as: waypoints, G-code, toolpath previews, robot targets, print metrics."""
+"""The output contract of a slice: meshes, field, layers, print files, metrics.json, report.md and figures.
+
+Everything here takes the step results as plain objects (:class:`RunResults`) and writes files
+atomically; reading them from a store is the tasks' business.
+"""
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from neuralslicer.fileio import write_text_atomic
+import numpy as np
+import pyvista as pv
+import trimesh
+
+from neuralslicer.cage import Cage
+from neuralslicer.fea.samples import StressSamples
+from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
+from neuralslicer.layers import Layers
+from neuralslicer.metrics import overhang_area_fraction, strength_angles, strength_satisfaction, support_angles
 from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layers,
+                                 plot_learning_curves, plot_strain_histogram)
+from neuralslicer.samples import SurfaceSamples, write_samples_ply
+from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
 from neuralslicer.toolpath.types import Toolpaths
+
+#: print metrics copied into metrics.json
+PRINT_METRICS = (
+    "toolpath_length_mm", "n_waypoints", "estimated_print_time_s", "material_mm3", "n_collisions",
+    "n_part_collisions", "n_platform_collisions", "n_singular", "n_rotary_out_of_range", "c_range_deg",
+    "n_waypoints_outside_solid",
+)
+PLANAR = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass
+class Attempt:
+    """One field printed on the way to a collision-free program: its label, field and print metrics."""
+
+    label: str
+    field: ScalarField
+    print_metrics: dict
+
+
+@dataclass
+class RunResults:
+    """The results of every step of one slice, as the output contract needs them."""
+
+    model: str
+    surface: trimesh.Trimesh
+    surface_attrs: dict
+    samples: SurfaceSamples
+    cage: Cage
+    cage_attrs: dict
+    field: ScalarField
+    field_history: dict[str, np.ndarray]
+    layers: Layers
+    toolpaths: Toolpaths
+    program: MachineProgram
+    print_metrics: dict
+    collision_maps: dict[str, tuple[np.ndarray, np.ndarray]]
+    wall_s: dict[str, float]
+    stress: StressSamples | None = None
+    verify: tuple[dict[str, np.ndarray], dict[str, float]] | None = None
+    attempts: list[Attempt] = field(default_factory=list)
+
+
+def write_ply(path: Path, mesh: trimesh.Trimesh, normals: np.ndarray | None = None) -> None:
+    """Binary PLY of a triangle mesh (with per-vertex normals when given), atomically."""
+    m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    if normals is not None:
+        m.vertex_normals = normals
+    data = trimesh.exchange.ply.export_ply(m, encoding="binary", vertex_normal=normals is not None)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_field_vtu(path: Path, field: ScalarField) -> None:
+    """The cage as a VTK unstructured grid: G as point data, the unit LPD and |grad G| as cell data."""
+    cells = np.hstack([np.full((len(field.cage_tets), 1), 4), field.cage_tets]).ravel()
+    grid = pv.UnstructuredGrid(cells, np.full(len(field.cage_tets), pv.CellType.TETRA, dtype=np.uint8), field.cage_vertices)
+    grid.point_data["G"] = field.G
+    grid.cell_data["lpd"] = field.lpd()
+    grid.cell_data["grad_norm"] = np.linalg.norm(field.gradients(), axis=1)
+    with atomic_path(path) as tmp:
+        grid.save(tmp)
+
+
+def write_layers(layers_dir: Path, meshes: list[trimesh.Trimesh]) -> None:
+    """All layers as layers/layer_00000.ply..., replacing the previous folder in one rename."""
+    staging = layers_dir.with_name(f".{layers_dir.name}.{uuid.uuid4().hex}.tmp")
+    staging.mkdir(parents=True)
+    try:
+        for i, m in enumerate(meshes):
+            write_ply(staging / f"layer_{i:05d}.ply", m, m.vertex_attributes["lpd"])
+        if layers_dir.exists():
+            trash = layers_dir.with_name(f".{layers_dir.name}.{uuid.uuid4().hex}.old")
+            os.replace(layers_dir, trash)
+            os.replace(staging, layers_dir)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(staging, layers_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def collision_resolution(samples: SurfaceSamples, attempts: list[Attempt], alpha_deg: float) -> list[dict]:
+    """Per field printed on the way to the program: its label, nozzle collisions and overhang area fraction."""
+    rows = []
+    for a in attempts:
+        _, lpd, _ = a.field.sample(samples.points)
+        rows.append({"stage": a.label, "collisions": int(a.print_metrics.get("n_collisions", 0)),
+                     "overhang_area_fraction": overhang_area_fraction(samples.normals, samples.areas,
+                                                                      samples.on_platform, lpd, alpha_deg)})
+    return rows
+
+
+def collision_table(rows: list[dict], alpha_deg: float) -> str:
+    """Markdown table of the collision resolution, in the order tried."""
+    lines = [f"| stage | nozzle collisions | overhang area (α = {alpha_deg:g}°) |", "| --- | --- | --- |"]
+    lines += [f"| {r['stage']} | {r['collisions']:,} | {100 * r['overhang_area_fraction']:.2f} % |" for r in rows]
+    return "\n".join(lines)
+
+
+def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, Any]:
+    """metrics.json: the model, cage, field, layers, support-free and strength figures, print metrics."""
+    B, fa = run.samples, run.field.info
+    _, lpd, _ = run.field.sample(B.points)
+    planar = np.tile(PLANAR, (len(B.points), 1))
+    metrics: dict[str, Any] = {
+        "model": run.model, "model_genus": run.surface_attrs["genus"],
+        "model_volume_mm3": run.surface_attrs["volume_mm3"], "n_samples_B": int(len(B.points)),
+        "n_cage_elements": int(len(run.cage.tets)), "n_cage_vertices": int(len(run.cage.vertices)),
+        "cage_genus": run.cage_attrs["genus"], "n_layers": len(run.layers.meshes), "sf.alpha_deg": alpha_deg,
+        "sf.overhang_area_fraction": overhang_area_fraction(B.normals, B.areas, B.on_platform, lpd, alpha_deg),
+        "sf.overhang_area_fraction_planar": overhang_area_fraction(B.normals, B.areas, B.on_platform, planar,
+                                                                   alpha_deg),
+        "field.kind": fa.get("kind", "neural"), "field.objectives": ",".join(fa.get("objectives", [])),
+        "field.steps": fa.get("steps", 0), "field.blend_planar": fa.get("blend_planar", 0.0),
+    }
+    metrics.update({f"layers.{k}": v for k, v in run.layers.report.items()})
+    metrics.update({f"loss.{k}": v for k, v in (fa.get("final") or {}).items()})
+    metrics.update({f"wall_s.{k}": v for k, v in run.wall_s.items()})
+    if run.stress is not None:
+        T = run.stress
+        _, lpd_t, _ = run.field.sample(T.points)
+        metrics["sr.beta_deg"] = beta_deg
+        metrics["sr.satisfied_fraction"] = strength_satisfaction(T.tau_max, T.volumes, lpd_t, beta_deg)
+        metrics["sr.satisfied_fraction_planar"] = strength_satisfaction(
+            T.tau_max, T.volumes, np.tile(PLANAR, (len(T.points), 1)), beta_deg)
+    if run.verify is not None:
+        metrics.update({f"fea.{k}": v for k, v in run.verify[1].items() if k.startswith("max_strain")})
+    metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
+    metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
+    return metrics
+
+
+def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
+    """The report's pictures under ``figs``: {caption: path relative to the output folder}."""
+    B, keep = run.samples, ~run.samples.on_platform
+    _, lpd, _ = run.field.sample(B.points)
+    planar = np.tile(PLANAR, (len(B.points), 1))
+    figures = {}
+    plot_layers(figs / "layers.png", run.layers.meshes)
+    figures["Layers"] = "figures/layers.png"
+    plot_angle_histogram(
+        figs / "sf_histogram.png",
+        {"planar": support_angles(B.normals[keep], planar[keep]), "computed": support_angles(B.normals[keep], lpd[keep])},
+        B.areas[keep], alpha_deg, "overhang angle asin(-n·d) (°)", "support-free: surface samples B",
+    )
+    figures["Support-free angle histogram"] = "figures/sf_histogram.png"
+    if run.stress is not None:
+        T = run.stress
+        _, lpd_t, _ = run.field.sample(T.points)
+        plot_angle_histogram(
+            figs / "sr_histogram.png",
+            {"planar": strength_angles(T.tau_max, np.tile(PLANAR, (len(T.points), 1))),
+             "computed": strength_angles(T.tau_max, lpd_t)},
+            T.volumes, beta_deg, "angle between tau_max and the layer (°)", "strength: stress samples T",
+        )
+        figures["Strength angle histogram"] = "figures/sr_histogram.png"
+    if run.verify is not None:
+        strains = run.verify[0]
+        plot_strain_histogram(figs / "strain_histogram.png", {"planar": strains["strain_planar"],
+                                                             "computed": strains["strain"]})
+        figures["Strain of the printed part (transversely isotropic FEA)"] = "figures/strain_histogram.png"
+    if run.field_history:
+        plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
+        figures["Learning curves"] = "figures/learning_curves.png"
+    plot_toolpaths_png(figs / "toolpaths.png", run.toolpaths)
+    figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
+    plot_collision_map(figs / "collisions.png", run.collision_maps)
+    figures["Print head collisions (red)"] = "figures/collisions.png"
+    return figures
+
+
+def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
+                  ) -> dict[str, Any]:
+    """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, figures, metrics.json and
+    report.md to ``out_dir``; returns the metrics."""
+    d = Path(out_dir)
+    write_ply(d / "model.ply", run.surface)
+    write_samples_ply(d / "samples_B.ply", run.samples)
+    write_field_vtu(d / "field.vtu", run.field)
+    write_layers(d / "layers", run.layers.meshes)
+    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False)
+    metrics = run_metrics(run, alpha_deg, beta_deg)
+    figures = draw_figures(d / "figures", run, alpha_deg, beta_deg)
+    sections = {}
+    if run.attempts:
+        rows = collision_resolution(run.samples, run.attempts, alpha_deg)
+        for i, row in enumerate(rows):
+            metrics.update({f"collision_resolution.{i}.{k}": v for k, v in row.items()})
+        sections["Collision resolution"] = collision_table(rows, alpha_deg)
+    write_json_atomic(d / "metrics.json", metrics)
+    write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {run.model}", metrics, figures, sections))
+    return json.loads(json.dumps(metrics, default=float))
 
 
 def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,

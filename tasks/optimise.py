@@ -5,10 +5,12 @@ import numpy as np
 from prefect import get_run_logger
 
 from neuralslicer.cage import Cage
+from neuralslicer.fea.samples import StressSamples
 from neuralslicer.model.solid import Solid
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.head_collision import collision_pool
 from neuralslicer.neural.optimise import optimise_field
+from neuralslicer.samples import SurfaceSamples
 from storage import ArtifactRef, ArtifactStore
 from tasks.progress import Progress
 
@@ -56,8 +58,8 @@ class StoreCheckpoints:
 def run_optimisation(
     out: ArtifactRef,
     cage: Cage,
-    samples: dict[str, np.ndarray],
-    stress: dict[str, np.ndarray] | None,
+    samples: SurfaceSamples,
+    stress: StressSamples | None,
     objectives: list[str],
     config: NeuralConfig,
     solid: Solid,
@@ -65,35 +67,24 @@ def run_optimisation(
     user_field_points: np.ndarray | None = None,
 ) -> tuple[dict, dict]:
     """Run the neural optimisation with store checkpoints and a progress bar; return arrays and attrs to store."""
-    store = ArtifactStore(out.store)
-    checkpoints = StoreCheckpoints(store, f"{out.model}/checkpoints/{out.digest}")
+    checkpoints = StoreCheckpoints(ArtifactStore(out.store), f"{out.model}/checkpoints/{out.digest}")
     cfg = objective_config(config, objectives)
     pool = None
     if cfg.loss.w_gc > 0:
-        pool = collision_pool(solid.H, solid.bounds, solid.volume(), samples["points"], cfg.loss.gc_points,
+        pool = collision_pool(solid.H, solid.bounds, solid.volume(), samples.points, cfg.loss.gc_points,
                               cfg.loss.gc_spacing, seed=cfg.optim.seed)
     with Progress("optimise", total=cfg.optim.max_steps) as bar:
         result = optimise_field(
-            cage.vertices,
-            cage.tets,
-            samples["points"],
-            samples["normals"],
-            samples["areas"],
-            samples["knn"],
-            samples["on_platform"],
-            stress_points=None if stress is None else stress["points"],
-            stress_volumes=None if stress is None else stress["volumes"],
-            stress_tau=None if stress is None else stress["tau_max"],
-            config=cfg,
-            platform_z=solid.platform_z,
-            user_field=user_field,
-            user_field_points=user_field_points,
+            cage.vertices, cage.tets, samples.points, samples.normals, samples.areas, samples.knn,
+            samples.on_platform,
+            stress_points=None if stress is None else stress.points,
+            stress_volumes=None if stress is None else stress.volumes,
+            stress_tau=None if stress is None else stress.tau_max,
+            config=cfg, platform_z=solid.platform_z, user_field=user_field, user_field_points=user_field_points,
             progress=lambda step, info: bar.update(
                 step, **{k: float(info[k]) for k in ("total", "sf", "po", "sr", "gc", "lr") if k in info}
             ),
-            save_checkpoint=checkpoints.save,
-            load_checkpoint=checkpoints.load,
-            collision_pool=pool,
+            save_checkpoint=checkpoints.save, load_checkpoint=checkpoints.load, collision_pool=pool,
         )
     arrays, attrs = result.to_arrays()
     get_run_logger().info("optimised in %d steps (%.1f s): %s", result.steps, result.wall_time_s, result.final)

@@ -8,7 +8,7 @@ import pytest
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.branch import make_user_field
-from tasks.steps import store_user_field
+from tasks.codec import store_user_field
 from flows.dask_support import StudyDaskTaskRunner
 from flows.studies import StudyOptions, batch_branches, cage_branches, initial_guess_branches, task_runner
 from flows.study_report import markdown_table, table_rows

@@ -19,6 +19,7 @@ from neuralslicer.fea.element import rotate_D, transversely_isotropic_D
 from neuralslicer.fea.grid import SolidLike, voxelize
 from neuralslicer.fea.solver import FEAResult, run_fea, solve_on_grid
 from neuralslicer.fea.spec import FEASpec
+from neuralslicer.scalar_field import ScalarField
 
 DirectionField = Callable[[np.ndarray], np.ndarray]
 
@@ -95,3 +96,22 @@ def verify_layers(solid: SolidLike, fea_spec: FEASpec, lpd_at: DirectionField,
             "strain": strain, "von_mises_strain": vm_strain,
             "max_displacement_mm": float(np.linalg.norm(res.displacement, axis=1).max()),
             "centres": res.grid.centres, "tangent": tangent_rule, "result": res}
+
+
+def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, reference: FEAResult | None = None
+                 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Strain of the part printed with planar layers and with the layers of ``field`` (its LPD; planar
+    where a voxel centre lies outside the cage): per-voxel strains and their maxima and 99th percentiles."""
+
+    def lpd_at(points: np.ndarray) -> np.ndarray:
+        """LPD of the field, +z outside the cage."""
+        d = field.sample(points)[1]
+        d[~np.all(np.isfinite(d), axis=1)] = [0.0, 0.0, 1.0]
+        return d
+
+    planar = verify_layers(solid, fea_spec, lambda p: np.tile([0.0, 0.0, 1.0], (len(p), 1)), reference=reference)
+    curved = verify_layers(solid, fea_spec, lpd_at, reference=reference)
+    return {"strain_planar": planar["strain"], "strain": curved["strain"], "centres": curved["centres"]}, {
+        "max_strain_planar": planar["max_strain"], "max_strain": curved["max_strain"],
+        "max_strain_p99_planar": planar["max_strain_p99"], "max_strain_p99": curved["max_strain_p99"],
+    }

@@ -16,6 +16,7 @@ from neuralslicer.model.components import (
 )
 from neuralslicer.model.convolution import radius_from_threshold
 from neuralslicer.model.spec import ModelSpec
+from neuralslicer.topology import genus
 from neuralslicer.types import FloatArray
 
 SCHEMA_VERSION = 1
@@ -228,6 +229,15 @@ class Solid:
         return abs(enclosed_volume(s.vertices, s.faces))
 
     # ---------------------------------------------------------------- storage
+    def surface_record(self) -> tuple[dict[str, np.ndarray], dict]:
+        """The boundary surface as arrays, with its genus, the volume, bounds, platform and feature size."""
+        surface = self.surface()
+        faces = np.asarray(surface.faces, dtype=np.int64)
+        return {"vertices": np.asarray(surface.vertices), "faces": faces}, {
+            "bounds": self.bounds, "platform_z": self.platform_z, "volume_mm3": self.volume(),
+            "genus": genus(faces), "feature_size": self.feature_size,
+        }
+
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
         """Plain arrays (``c{i}_{name}``, build frame) and JSON attrs that rebuild the same solid."""
         arrays: dict[str, np.ndarray] = {}

@@ -1,12 +1,15 @@
 """Initial guesses for G (SPEC step 9): height, heat-method geodesic distance, user field."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import cKDTree
 
+from neuralslicer.errors import InputError
 from neuralslicer.tetmesh import barycentric_gradients, tet_volumes
 
 
@@ -91,3 +94,16 @@ def height_matched(field: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     if span <= 0:
         return z.copy()
     return z.min() + (field - field.min()) * (np.ptp(z) / span)
+
+
+def load_user_field(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A user field file (.npz: points (p,3) in the build frame, values (p,)), checked: (points, values)."""
+    try:
+        with np.load(path) as data:
+            points = np.asarray(data["points"], dtype=np.float64)
+            values = np.asarray(data["values"], dtype=np.float64).ravel()
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(path, f"a user field is an .npz with 'points' (p,3) and 'values' (p,): {exc}") from None
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) != len(values) or not np.isfinite(values).all():
+        raise InputError(path, f"points {points.shape} and values {values.shape} do not match (p,3) and (p,)")
+    return points, values

@@ -1,0 +1,170 @@
+"""The store codec: how each step's artifact is read back (and the print encoded), in one place."""
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from neuralslicer.cage import Cage
+from neuralslicer.errors import InputError
+from neuralslicer.fea import FEAResult
+from neuralslicer.fea.samples import StressSamples
+from neuralslicer.fea.spec import FEASpec
+from neuralslicer.layers import Layers
+from neuralslicer.model.solid import Solid
+from neuralslicer.motion.collision import CollisionReport
+from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.neural.initial_guess import load_user_field
+from neuralslicer.outputs import Attempt, RunResults
+from neuralslicer.samples import SurfaceSamples
+from neuralslicer.scalar_field import ScalarField
+from neuralslicer.toolpath.types import Toolpaths
+from storage import ArtifactRef, ArtifactStore, digest
+
+
+def read(ref: ArtifactRef, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Arrays (all, or the named ones) and attributes of a stored step."""
+    return ArtifactStore(ref.store).read(ref.path, names)
+
+
+def attrs_of(ref: ArtifactRef) -> dict[str, Any]:
+    """Attributes of a stored step."""
+    return ArtifactStore(ref.store).attrs(ref.path)
+
+
+def step_attrs(refs: dict[str, ArtifactRef | None]) -> dict[str, dict[str, Any]]:
+    """Attributes of each stored step (wall times, reports), the missing ones left out."""
+    return {k: attrs_of(r) for k, r in refs.items() if r is not None}
+
+
+def read_solid(ref: ArtifactRef) -> Solid:
+    """The implicit solid stored by the model step."""
+    return Solid.from_arrays(*read(ref))
+
+
+def read_surface(ref: ArtifactRef) -> tuple[trimesh.Trimesh, dict[str, Any]]:
+    """The boundary surface stored by the solid step, with its genus, volume and bounds."""
+    arrays, attrs = read(ref)
+    return trimesh.Trimesh(arrays["vertices"], arrays["faces"], process=False), attrs
+
+
+def read_samples(ref: ArtifactRef) -> SurfaceSamples:
+    """Surface samples B."""
+    return SurfaceSamples.from_arrays(*read(ref))
+
+
+def read_stress(ref: ArtifactRef) -> StressSamples:
+    """Stress samples T."""
+    return StressSamples.from_arrays(*read(ref))
+
+
+def read_cage(ref: ArtifactRef) -> Cage:
+    """The cage."""
+    return Cage.from_arrays(*read(ref))
+
+
+def read_field(cage: Cage, ref: ArtifactRef) -> ScalarField:
+    """The printing field G on its cage."""
+    arrays, attrs = read(ref, ["G"])
+    return ScalarField.from_arrays(cage.vertices, cage.tets, arrays, attrs)
+
+
+def read_field_history(ref: ArtifactRef) -> dict[str, np.ndarray]:
+    """The optimisation's per-step history of a stored field (empty for the height field)."""
+    arrays, _ = read(ref)
+    return {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("history/")}
+
+
+def read_layers(ref: ArtifactRef) -> Layers:
+    """Layers in print order."""
+    return Layers.from_arrays(*read(ref))
+
+
+def encode_print(tp: Toolpaths, program: MachineProgram, metrics: dict, collisions: CollisionReport
+                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """One group for the toolpaths step: toolpaths/*, program/*, collisions/* and the metrics."""
+    tp_arrays, tp_attrs = tp.to_arrays()
+    prog_arrays, prog_attrs = program.to_arrays()
+    arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()},
+              "collisions/indices": collisions.indices, "collisions/kind": collisions.kind}
+    return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
+
+
+def read_print(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
+    """Toolpaths, machine program and print metrics (the inverse of encode_print)."""
+    arrays, attrs = read(ref)
+    part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
+    return (
+        Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]),
+        MachineProgram.from_arrays(part["program"], attrs["program"]),
+        attrs["metrics"],
+    )
+
+
+def n_collisions(ref: ArtifactRef) -> int:
+    """Colliding waypoints of a stored print."""
+    return int(attrs_of(ref)["metrics"].get("n_collisions", 0))
+
+
+def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints (n,3) of a stored print and which of them collide (n,) bool."""
+    arrays, _ = read(ref, ["toolpaths/xyz", "collisions/indices"])
+    hit = np.zeros(len(arrays["toolpaths/xyz"]), bool)
+    hit[np.asarray(arrays["collisions/indices"], np.int64)] = True
+    return arrays["toolpaths/xyz"], hit
+
+
+def read_fea(ref: ArtifactRef) -> FEAResult:
+    """The isotropic FEA result."""
+    return FEAResult.from_arrays(*read(ref))
+
+
+def read_fea_spec(model: ArtifactRef) -> FEASpec:
+    """The FEA block of the model's spec (an error naming the spec when it has none)."""
+    spec = attrs_of(model)["spec"]
+    if spec.get("fea") is None:
+        raise InputError(spec.get("source") or model.model, "the model spec has no 'fea' block (supports and loads)")
+    return FEASpec.model_validate(spec["fea"])
+
+
+def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
+    """Put a user field file (.npz: points (p,3) in the build frame, values (p,)) in the store, keyed by content."""
+    points, values = load_user_field(path)
+    key = digest("user_field", hashlib.sha256(points.tobytes() + values.tobytes()).hexdigest())
+    st = ArtifactStore(store)
+    ref = st.ref(f"{model}/user_field/{key}", key)
+    st.write_once(ref.path, lambda: ({"points": points, "values": values}, {"source": str(path)}))
+    return ref
+
+
+def read_user_field(ref: ArtifactRef | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(values, points) of a stored user field; (None, None) without one."""
+    if ref is None:
+        return None, None
+    arrays, _ = read(ref)
+    return arrays["values"], arrays["points"]
+
+
+def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
+             layers: ArtifactRef, printing: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
+             attempts: list[tuple[str, ArtifactRef, ArtifactRef]]) -> RunResults:
+    """Every step's result of one slice, as the output contract needs them."""
+    refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers,
+            "toolpaths": printing, "stress_samples": stress, "verify": verify}
+    c = read_cage(cage)
+    surface, surface_attrs = read_surface(solid)
+    tp, program, print_metrics = read_print(printing)
+    maps = {"printed": read_collision_map(printing)}
+    if attempts and attempts[0][2] != printing:
+        maps = {f"first print ({attempts[0][0]})": read_collision_map(attempts[0][2]), **maps}
+    return RunResults(
+        model=model.model, surface=surface, surface_attrs=surface_attrs, samples=read_samples(samples), cage=c,
+        cage_attrs=attrs_of(cage), field=read_field(c, field), field_history=read_field_history(field),
+        layers=read_layers(layers), toolpaths=tp, program=program, print_metrics=print_metrics,
+        collision_maps=maps, wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
+        stress=read_stress(stress) if stress is not None else None,
+        verify=read(verify) if verify is not None else None,
+        attempts=[Attempt(label, read_field(c, f), attrs_of(p)["metrics"]) for label, f, p in attempts],
+    )
