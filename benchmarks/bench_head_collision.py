@@ -59,7 +59,7 @@ def cost() -> dict:
     from neuralslicer.model.spec import spec_for_file
     from neuralslicer.neural import NeuralConfig
     from neuralslicer.neural.head_collision import collision_pool
-    from neuralslicer.neural.optimise import FieldProblem
+    from neuralslicer.neural.problem import FieldProblem
     from neuralslicer.samples import surface_samples
 
     solid = implicit_solid(spec_for_file(DATA / "ring.tet", up="y"))
@@ -71,8 +71,7 @@ def cost() -> dict:
         cfg = NeuralConfig.model_validate({"loss": {"w_gc": w_gc}})
         t0 = time.perf_counter()
         pool = collision_pool(solid.H, solid.bounds, solid.volume(), B.points, cfg.loss.gc_points) if w_gc else None
-        problem = FieldProblem(cage.vertices, cage.tets, B.points, B.normals, B.areas, B.knn, B.on_platform,
-                               None, None, None, cfg, solid.platform_z, pool)
+        problem = FieldProblem(cage.vertices, cage.tets, B, None, cfg, solid.platform_z, pool)
         setup = time.perf_counter() - t0
         fields = problem.new_fields()
         with torch.no_grad():  # a tilted, colliding field: a few hundred random-direction steps

@@ -28,7 +28,8 @@ import torch
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.neural.config import DeformationConfig
 from neuralslicer.neural.deformation import ArapDeformation
-from neuralslicer.neural.optimise import FieldProblem
+from neuralslicer.neural.problem import FieldProblem
+from neuralslicer.samples import SurfaceSamples
 from neuralslicer.tetmesh import box_tet_grid
 
 RESULTS = Path(__file__).parent / "results" / "bench_neural.json"
@@ -131,7 +132,7 @@ def _step_case(size: str, network: str, steps: int, device: str) -> dict:
     pts, nrm, area, knn, pf = _sphere_samples(lo, hi)
     cfg = NeuralConfig.model_validate({"network": network, "device": device})
     t = time.perf_counter()
-    prob = FieldProblem(V, T, pts, nrm, area, knn, pf, None, None, None, cfg, 0.0)
+    prob = FieldProblem(V, T, SurfaceSamples(pts, nrm, area, knn, pf), None, cfg, 0.0)
     setup = time.perf_counter() - t
     torch.manual_seed(0)
     fields = prob.new_fields()
@@ -207,7 +208,7 @@ def bench_ring(kinds: list[str], cache: Path | None) -> list[dict]:
         if kind == "user":  # a user field: distance from the ring's centre axis, flipped (a 'dome')
             c = np.array([0.0, 0.0, 55.0])
             user = -np.linalg.norm((d["CV"] - c)[:, [0, 2]], axis=1)
-        r = optimise_field(d["CV"], d["CT"], d["P"], d["N"], d["A"], d["K"], d["F"], config=cfg,
+        r = optimise_field(d["CV"], d["CT"], SurfaceSamples(d["P"], d["N"], d["A"], d["K"], d["F"]), config=cfg,
                            platform_z=float(d["pz"]), user_field=user)
         s = r.satisfaction
         row = {"init": kind, "tets": int(len(d["CT"])), "samples": int(len(d["P"])),

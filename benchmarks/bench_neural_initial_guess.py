@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neuralslicer.neural import NeuralConfig, optimise_field  # noqa: E402
+from neuralslicer.samples import SurfaceSamples  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "bench_neural.json"
 #: the optimiser as it was before issue #4 (the DC3 correction is not emulated: collision is off here)
@@ -151,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
     for kind in a.kinds.split(","):
         cfg = NeuralConfig.model_validate(_deep(json.loads(json.dumps(base)), {"init": {"kind": kind}}))
         t0 = time.perf_counter()
-        r = optimise_field(d["V"], d["T"], d["P"], d["N"], d["A"], d["K"], d["F"], config=cfg,
+        r = optimise_field(d["V"], d["T"], SurfaceSamples(d["P"], d["N"], d["A"], d["K"], d["F"]), config=cfg,
                            platform_z=float(d["pz"]), user_field=d["uv"] if kind == "user" else None,
                            user_field_points=d["up"] if kind == "user" else None)
         row = {"init": kind, "tets": int(len(d["T"])), "samples": int(len(d["P"])), "steps": r.steps,

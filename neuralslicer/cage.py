@@ -9,9 +9,9 @@ import numpy as np
 import pytetwild
 import trimesh
 from pydantic import BaseModel, Field
-from skimage.measure import marching_cubes
 
 from neuralslicer.errors import NeuralSlicerError
+from neuralslicer.model.grid import level_set_mesh
 from neuralslicer.model.solid import Solid
 from neuralslicer.tetmesh import TetLocator, boundary_faces, orient_tets, tet_volumes
 from neuralslicer.topology import tet_boundary_genus
@@ -69,11 +69,8 @@ def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, of
     axes = [lo[i] + h * np.arange(shape[i]) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     values = H(grid).reshape(shape)
-    verts, faces, _, _ = marching_cubes(values, level=offset, spacing=(h, h, h))
-    mesh = trimesh.Trimesh(verts + lo, faces[:, ::-1], process=True)  # skimage faces point to increasing value
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
+    verts, faces = level_set_mesh(values, lo, h, level=offset, allow_degenerate=True)
+    return trimesh.Trimesh(verts, faces, process=True)
 
 
 def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, np.ndarray]:

@@ -75,12 +75,8 @@ def run_optimisation(
                               cfg.loss.gc_spacing, seed=cfg.optim.seed)
     with Progress("optimise", total=cfg.optim.max_steps) as bar:
         result = optimise_field(
-            cage.vertices, cage.tets, samples.points, samples.normals, samples.areas, samples.knn,
-            samples.on_platform,
-            stress_points=None if stress is None else stress.points,
-            stress_volumes=None if stress is None else stress.volumes,
-            stress_tau=None if stress is None else stress.tau_max,
-            config=cfg, platform_z=solid.platform_z, user_field=user_field, user_field_points=user_field_points,
+            cage.vertices, cage.tets, samples, stress, config=cfg, platform_z=solid.platform_z,
+            user_field=user_field, user_field_points=user_field_points,
             progress=lambda step, info: bar.update(
                 step, **{k: float(info[k]) for k in ("total", "sf", "po", "sr", "gc", "lr") if k in info}
             ),

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from neuralslicer.motion.collision import _inside_head, check_collisions, platform_clearance
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.neural import NeuralConfig, optimise_field
+from neuralslicer.samples import SurfaceSamples
 from neuralslicer.neural.field import CageGeometry, field_gradient
 from neuralslicer.neural.head_collision import HeadCollision, HeadShape, collision_pool
 from neuralslicer.scalar_field import ScalarField
@@ -154,8 +155,8 @@ def _optimise(torus, objectives: set[str]):
     if "gc" in objectives:
         volume = 2 * np.pi ** 2 * R_MAJOR * R_MINOR ** 2
         pool = collision_pool(torus_H, np.array([V.min(0), V.max(0)]), volume, B["points"], 1500)
-    return optimise_field(V, T, B["points"], B["normals"], B["areas"], B["knn"], B["on_platform"], config=cfg,
-                          platform_z=0.0, collision_pool=pool)
+    samples = SurfaceSamples(B["points"], B["normals"], B["areas"], B["knn"], B["on_platform"])
+    return optimise_field(V, T, samples, config=cfg, platform_z=0.0, collision_pool=pool)
 
 
 def test_gc_removes_the_collisions_of_a_closed_loop(torus):

@@ -11,6 +11,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from neuralslicer.neural import NeuralConfig, optimise_field
+from neuralslicer.samples import SurfaceSamples
 from neuralslicer.neural.device import resolve_device
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, user_field_on_cage
 from neuralslicer.tetmesh import box_tet_grid
@@ -43,7 +44,7 @@ def _cfg(**optim) -> NeuralConfig:
 
 def _run(problem, cfg, **kw):
     V, T, (pts, nrm, area, knn, pf) = problem
-    return optimise_field(V, T, pts, nrm, area, knn, pf, config=cfg, platform_z=0.0, **kw)
+    return optimise_field(V, T, SurfaceSamples(pts, nrm, area, knn, pf), config=cfg, platform_z=0.0, **kw)
 
 
 class Killed(Exception):

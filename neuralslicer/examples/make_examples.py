@@ -38,7 +38,8 @@ def _cyl_sdf(p: np.ndarray, centre, axis: int, radius: float) -> np.ndarray:
 def bracket_mesh(voxel: float = 0.5, target_faces: int = 3000) -> trimesh.Trimesh:
     """L-bracket 60 x 40 x 40 mm, plates 6 mm, bolt holes: marching cubes + quadric decimation."""
     import pyvista as pv
-    from skimage.measure import marching_cubes
+
+    from neuralslicer.model.grid import level_set_mesh
 
     def sdf(p: np.ndarray) -> np.ndarray:
         """Signed distance of the bracket (plates minus bolt holes)."""
@@ -53,8 +54,7 @@ def bracket_mesh(voxel: float = 0.5, target_faces: int = 3000) -> trimesh.Trimes
     n = np.ceil((np.array([63.0, 43.0, 43.0]) - lo) / voxel).astype(int) + 1
     grid = np.stack(np.meshgrid(*[lo[i] + voxel * np.arange(n[i]) for i in range(3)], indexing="ij"), -1)
     values = sdf(grid.reshape(-1, 3)).reshape(tuple(n))
-    v, f, _, _ = marching_cubes(values, 0.0, spacing=(voxel,) * 3, allow_degenerate=False)
-    v += lo
+    v, f = level_set_mesh(values, lo, voxel)
     poly = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
     poly = poly.decimate(1.0 - target_faces / len(f), volume_preservation=True)
     faces = poly.faces.reshape(-1, 4)[:, 1:]

@@ -98,21 +98,28 @@ def inside_bounds(fn: ValueFn, lo_hi: FloatArray, spacing: float, lipschitz: flo
     return np.stack([grid.points(inside.min(0)) - spacing, grid.points(inside.max(0)) + spacing])
 
 
-def zero_level_mesh(grid: GridSamples) -> tuple[FloatArray, IndexArray]:
-    """Marching cubes of ``H = 0``: vertices (n, 3), faces (m, 3) wound so that normals point outward."""
+def level_set_mesh(values: np.ndarray, origin: FloatArray, spacing: float, level: float = 0.0,
+                   allow_degenerate: bool = False) -> tuple[FloatArray, IndexArray]:
+    """Marching cubes of ``values == level`` on a regular grid (node ``i, j, k`` at ``origin + spacing ·
+    (i, j, k)``): vertices (n, 3) float64 and faces (m, 3) int64 wound so that normals point toward
+    larger values (outward for H)."""
     from skimage.measure import marching_cubes
 
-    values = grid.values
-    if not (values.min() < 0 < values.max()):
-        raise ValueError("the grid does not cross H = 0")
-    verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=(grid.spacing,) * 3,
-                                        allow_degenerate=False)
-    verts = verts + grid.origin
+    verts, faces, _, _ = marching_cubes(values, level=level, spacing=(spacing,) * 3,
+                                        allow_degenerate=allow_degenerate)
+    verts = np.asarray(verts, dtype=np.float64) + origin
     faces = faces.astype(np.int64)
     a, b, c = (verts[faces[:, i]] for i in range(3))
     if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:  # signed volume: outward winding
         faces = faces[:, ::-1].copy()
     return verts, faces
+
+
+def zero_level_mesh(grid: GridSamples) -> tuple[FloatArray, IndexArray]:
+    """Marching cubes of ``H = 0``: vertices (n, 3), faces (m, 3) wound so that normals point outward."""
+    if not (grid.values.min() < 0 < grid.values.max()):
+        raise ValueError("the grid does not cross H = 0")
+    return level_set_mesh(grid.values, grid.origin, grid.spacing)
 
 
 def project_to_zero(fn: ValueGradFn, points: FloatArray, max_step: float, tolerance: float,

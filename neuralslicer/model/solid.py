@@ -15,6 +15,7 @@ from neuralslicer.model.components import (
     component_from_arrays, enclosed_volume,
 )
 from neuralslicer.model.convolution import radius_from_threshold
+from neuralslicer.model.grid import level_set_mesh
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.topology import genus
 from neuralslicer.types import FloatArray
@@ -178,8 +179,6 @@ class Solid:
 
     def _marching_cubes(self, voxel: float) -> trimesh.Trimesh:
         """Marching cubes of H at level 0 on a narrow-band grid that covers the solid with a margin."""
-        from skimage.measure import marching_cubes
-
         boxes = np.stack([c.box for c in self.components])
         lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
         if self.smooth_union is not None:
@@ -201,12 +200,9 @@ class Solid:
         big = np.float32(4.0 * voxel * 8)
         np.clip(values, -big, big, out=values)
         values[values == 0] = np.float32(1e-6 * voxel)  # exact zeros make non-manifold cases
-        verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3,
-                                            gradient_direction="descent", allow_degenerate=False)
-        verts = np.asarray(verts, dtype=np.float64) + origin
-        verts = self.project(verts, steps=2)
-        mesh = trimesh.Trimesh(verts, faces.astype(np.int64), process=False)
-        if enclosed_volume(mesh.vertices, mesh.faces) < 0:
+        verts, faces = level_set_mesh(values, origin, voxel)
+        mesh = trimesh.Trimesh(self.project(verts, steps=2), faces, process=False)
+        if enclosed_volume(mesh.vertices, mesh.faces) < 0:  # projected onto H = 0: check the winding again
             mesh.invert()
         return mesh
 

@@ -90,64 +90,53 @@ def filament_area(profile: MachineProfile) -> float:
     return float(np.pi * 0.25 * profile.extrusion.filament_diameter ** 2)
 
 
-def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None = None) -> MachineProgram:
-    """Machine program for toolpaths: IK with continuous B/C, rotary splitting, feeds, extrusion.
-
-    Extrusion per print move = flow * mean thickness * mean width * length / filament area (mm of
-    filament); travels longer than ``extrusion.retract_min_travel`` retract before and prime after.
-    Move durations: length / speed (print, first-layer or travel speed), at least the rotary change
-    divided by ``feeds.rotary_deg_s``.
-    """
-    kin = profile.kinematics
-    pz = float(platform_z if platform_z is not None else tp.attrs.get("platform_z", 0.0))
-    offset = (np.asarray(kin.part_offset, np.float64) if kin.part_offset is not None
-              else auto_part_offset(tp, pz))
-    n = len(tp)
-    # approach: start above the first waypoint along its tool axis
+def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
+    """One move per waypoint (plus the approach from above the first one along its tool axis): part
+    position, B/C by IK with its singular and out-of-range flags, filament and duration of the move
+    arriving there."""
+    kin, f = profile.kinematics, profile.feeds
     lift = float(tp.attrs.get("config", {}).get("travel_lift", 1.0)) or 1.0
-    xyz = np.concatenate([tp.xyz[:1] + lift * tp.axis[:1], tp.xyz])
-    axis = np.concatenate([tp.axis[:1], tp.axis])
-    layer = np.concatenate([tp.layer[:1], tp.layer])
-    extrude = np.concatenate([[False], tp.extrude])
-    source = np.concatenate([[-1], np.arange(n)])
-    thick = np.concatenate([tp.thickness[:1], tp.thickness])
-    width = np.concatenate([tp.width[:1], tp.width])
-    b, c, singular, out = inverse_kinematics(axis, kin)
+    first = lambda a, v: np.concatenate([v, a])  # noqa: E731
+    xyz = first(tp.xyz, tp.xyz[:1] + lift * tp.axis[:1])
+    layer, extrude = first(tp.layer, tp.layer[:1]), first(tp.extrude, [False])
+    thick, width = first(tp.thickness, tp.thickness[:1]), first(tp.width, tp.width[:1])
+    b, c, singular, out = inverse_kinematics(first(tp.axis, tp.axis[:1]), kin)
     m = len(xyz)
-    # per arriving move: length, filament, duration
-    seg = np.zeros(m)
+    seg, t_mean, w_mean, drot = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
     seg[1:] = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-    area = filament_area(profile)
-    de = np.zeros(m)
-    t_mean = np.zeros(m)
-    w_mean = np.zeros(m)
     t_mean[1:] = 0.5 * (thick[1:] + thick[:-1])
     w_mean[1:] = 0.5 * (width[1:] + width[:-1])
-    de = np.where(extrude, profile.extrusion.flow * t_mean * w_mean * seg / area, 0.0)
-    f = profile.feeds
+    de = np.where(extrude, profile.extrusion.flow * t_mean * w_mean * seg / filament_area(profile), 0.0)
     speed = np.where(extrude, np.where(layer == layer.min(initial=0), f.first_layer_mm_s, f.print_mm_s),
                      f.travel_mm_s)
-    drot = np.zeros(m)
     drot[1:] = np.maximum(np.abs(np.diff(b)), np.abs(np.diff(c)))
-    dt = np.maximum(seg / speed, drot / f.rotary_deg_s)
-    # split moves whose rotary change exceeds the maximal step (linear in part xyz and in B, C)
-    nsub = np.maximum(1, np.ceil(drot / kin.max_rotary_step_deg - 1e-9)).astype(np.int64)
+    return {"xyz": xyz, "b": b, "c": c, "de": de, "dt": np.maximum(seg / speed, drot / f.rotary_deg_s),
+            "drot": drot, "extrude": extrude, "layer": layer, "source": first(np.arange(len(tp)), [-1]),
+            "singular": singular, "out": out}
+
+
+def _split_rotary(mv: dict[str, np.ndarray], max_step_deg: float) -> dict[str, np.ndarray]:
+    """Moves whose rotary change exceeds the maximal step split into equal parts (linear in part xyz
+    and in B, C; filament and time shared); the source waypoint is kept on the last part."""
+    m = len(mv["xyz"])
+    nsub = np.maximum(1, np.ceil(mv["drot"] / max_step_deg - 1e-9)).astype(np.int64)
     nsub[0] = 1
     rep = np.repeat(np.arange(m), nsub)
     k = np.arange(len(rep)) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 1
     frac = k / nsub[rep]
     prev = np.maximum(rep - 1, 0)
     lerp = lambda a: a[prev] + (a[rep] - a[prev]) * (frac if a.ndim == 1 else frac[:, None])  # noqa: E731
-    e_xyz, e_b, e_c = lerp(xyz), lerp(b), lerp(c)
-    e_de = de[rep] / nsub[rep]
-    e_dt = dt[rep] / nsub[rep]
-    e_kind = np.where(extrude[rep], PRINT, TRAVEL).astype(np.int8)
-    e_src = np.where(k == nsub[rep], source[rep], -1)
-    e_layer = layer[rep]
-    # retract before / prime after travel runs longer than retract_min_travel
-    ex = profile.extrusion
-    e_len = np.linalg.norm(np.diff(e_xyz, axis=0, prepend=e_xyz[:1]), axis=1)
-    trav = e_kind == TRAVEL
+    return {"xyz": lerp(mv["xyz"]), "b": lerp(mv["b"]), "c": lerp(mv["c"]), "de": mv["de"][rep] / nsub[rep],
+            "dt": mv["dt"][rep] / nsub[rep], "kind": np.where(mv["extrude"][rep], PRINT, TRAVEL).astype(np.int8),
+            "source": np.where(k == nsub[rep], mv["source"][rep], -1), "layer": mv["layer"][rep]}
+
+
+def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tuple[dict[str, np.ndarray], int]:
+    """Retract before and prime after travel runs longer than retract_min_travel (moves in place, at
+    the pose of the move before / the travel's end); the moves and the number of retractions."""
+    ex, f = profile.extrusion, profile.feeds
+    e_len = np.linalg.norm(np.diff(e["xyz"], axis=0, prepend=e["xyz"][:1]), axis=1)
+    trav = e["kind"] == TRAVEL
     starts = np.flatnonzero(trav & ~np.concatenate([[False], trav[:-1]]))
     ends = np.flatnonzero(trav & ~np.concatenate([trav[1:], [False]]))
     cum = np.concatenate([[0.0], np.cumsum(np.where(trav, e_len, 0.0))])
@@ -161,28 +150,42 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     order = np.argsort(ins_idx, kind="stable")
     ins_idx, ins_from, ins_de, ins_dt = ins_idx[order], ins_from[order], ins_de[order], ins_dt[order]
     ins = lambda a, v: np.insert(a, ins_idx, v, axis=0)  # noqa: E731
-    e_xyz = ins(e_xyz, e_xyz[ins_from])
-    e_b, e_c = ins(e_b, e_b[ins_from]), ins(e_c, e_c[ins_from])
-    e_de = ins(e_de, ins_de)
-    e_dt = ins(e_dt, np.maximum(ins_dt, 1e-3))
-    e_kind = ins(e_kind, RETRACT)
-    e_src = ins(e_src, -1)
-    e_layer = ins(e_layer, e_layer[ins_from])
-    e_dt[0] = 0.0
-    mxyz = machine_position(e_xyz, e_b, e_c, kin, offset)
-    machine = np.column_stack([mxyz, e_b, e_c])
-    br, cr = np.radians(e_b), np.radians(e_c)
+    out = {k: ins(e[k], e[k][ins_from]) for k in ("xyz", "b", "c", "layer")}
+    out.update(de=ins(e["de"], ins_de), dt=ins(e["dt"], np.maximum(ins_dt, 1e-3)), kind=ins(e["kind"], RETRACT),
+               source=ins(e["source"], -1))
+    out["dt"][0] = 0.0
+    return out, int(len(r_at))
+
+
+def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None = None) -> MachineProgram:
+    """Machine program for toolpaths: IK with continuous B/C, rotary splitting, feeds, extrusion.
+
+    Extrusion per print move = flow * mean thickness * mean width * length / filament area (mm of
+    filament); travels longer than ``extrusion.retract_min_travel`` retract before and prime after.
+    Move durations: length / speed (print, first-layer or travel speed), at least the rotary change
+    divided by ``feeds.rotary_deg_s``.
+    """
+    kin = profile.kinematics
+    pz = float(platform_z if platform_z is not None else tp.attrs.get("platform_z", 0.0))
+    offset = (np.asarray(kin.part_offset, np.float64) if kin.part_offset is not None
+              else auto_part_offset(tp, pz))
+    mv = _moves(tp, profile)
+    split = _split_rotary(mv, kin.max_rotary_step_deg)
+    e, n_retractions = _retract_and_prime(split, profile)
+    mxyz = machine_position(e["xyz"], e["b"], e["c"], kin, offset)
+    machine = np.column_stack([mxyz, e["b"], e["c"]])
+    br, cr = np.radians(e["b"]), np.radians(e["c"])
     a_fk = np.stack([-np.cos(cr) * np.sin(br), np.sin(cr) * np.sin(br), np.cos(br)], axis=1)  # FK tool axis
-    program = MachineProgram(machine=machine, extruder=np.cumsum(e_de), time_s=e_dt, kind=e_kind,
-                             source=e_src.astype(np.int64), layer=e_layer.astype(np.int64),
-                             part_xyz=e_xyz, part_axis=a_fk, part_offset=offset, profile=profile)
+    program = MachineProgram(machine=machine, extruder=np.cumsum(e["de"]), time_s=e["dt"], kind=e["kind"],
+                             source=e["source"].astype(np.int64), layer=e["layer"].astype(np.int64),
+                             part_xyz=e["xyz"], part_axis=a_fk, part_offset=offset, profile=profile)
     b_all = machine[:, 3]
     program.attrs = {
         "platform_z": pz,
-        "n_singular": int(singular.sum()),
-        "n_rotary_out_of_range": int(out.sum()),
-        "n_inserted_rotary": int(len(rep) - m),
-        "n_retractions": int(len(r_at)),
+        "n_singular": int(mv["singular"].sum()),
+        "n_rotary_out_of_range": int(mv["out"].sum()),
+        "n_inserted_rotary": int(len(split["xyz"]) - len(mv["xyz"])),
+        "n_retractions": n_retractions,
         "max_rotary_step_deg": float(np.max(np.abs(np.diff(machine[:, 3:5], axis=0)), initial=0.0)),
         "b_range_deg": [float(b_all.min()), float(b_all.max())],
         "c_range_deg": [float(machine[:, 4].min()), float(machine[:, 4].max())],

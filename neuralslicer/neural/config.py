@@ -139,6 +139,13 @@ class OptimConfig(BaseModel):
         description="a step whose loss exceeds this multiple of the best loss so far is undone: weights "
         "and Adam state go back to the best iterate and the learning rate is halved (0: off)",
     )
+    grad_clip: float = Field(
+        5.0, ge=0,
+        description="a step's gradient norm is capped at this multiple of the running average of the "
+        "recent (capped) norms (0: off). When new collisions enter L_GC's active set the loss can jump a "
+        "thousandfold for one step; uncapped, that gradient fills Adam's second moments and the run "
+        "coasts along the spike's direction, then stalls for hundreds of steps",
+    )
     restart_from_best: bool = Field(
         True,
         description="when the plateau scheduler lowers the learning rate, go on from the best iterate "

@@ -228,6 +228,75 @@ def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet | None], cfg: T
     return out
 
 
+COLUMNS = ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")
+
+
+class _Columns:
+    """The waypoint columns of :func:`toolpaths`, appended path by path."""
+
+    def __init__(self) -> None:
+        """Empty columns."""
+        self.cols: dict[str, list] = {k: [] for k in COLUMNS}
+
+    def emit(self, layer: int, path: int, xyz: FloatArray, axis: FloatArray, thick: FloatArray,
+             width: float, extrude: np.ndarray) -> None:
+        """Append waypoints."""
+        for k, v in zip(COLUMNS, (np.full(len(xyz), layer, np.int64), np.full(len(xyz), path, np.int64), xyz, axis,
+                                  thick, np.full(len(xyz), width), extrude)):
+            self.cols[k].append(v)
+
+    def toolpaths(self) -> Toolpaths:
+        """The columns concatenated (unit tool axes)."""
+        c = {k: np.concatenate(v) for k, v in self.cols.items()}
+        return Toolpaths(layer=c["layer"], path=c["path"], xyz=c["xyz"], axis=_normalise(c["axis"]),
+                         thickness=c["thickness"], width=c["width"], extrude=c["extrude"])
+
+
+def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int
+                 ) -> tuple[list[_Path], int, int, int]:
+    """One layer's paths in print order from ``start`` (patches split, refined, filled, zigzags joined),
+    the patches filled and skipped, and the closed loops among the paths."""
+    verts, faces = np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64)
+    lpd = layer_lpd(layer)
+    if lpd.shape != verts.shape:
+        raise InputError(f"layers[{li}]", "vertex_attributes['lpd'] must be (n_vertices, 3)")
+    all_paths: list[_Path] = []
+    tri_sets: list[TriangleSet | None] = []
+    skipped = 0
+    for patch in split_patches(verts, faces, lpd):
+        if patch.area < cfg.min_patch_area:
+            skipped += 1
+            continue
+        patch = refine_patch(patch, cfg.max_edge or cfg.line_width)
+        tri_sets.append(TriangleSet(patch.vertices, patch.faces))
+        all_paths += _patch_paths(patch, len(tri_sets) - 1, li, cfg)
+    if not all_paths:
+        return [], 0, skipped, 0
+    start = start if start is not None else all_paths[0].xyz[0]
+    ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops), tri_sets, cfg)
+    return ordered, len(tri_sets), skipped, sum(p.closed for p in all_paths)
+
+
+def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray, cur: FloatArray | None,
+                path_id: int, cfg: ToolpathConfig) -> tuple[FloatArray | None, int]:
+    """Emit one layer's paths, each after a lifted travel from the previous one when it changes patch or
+    jumps further than ``lift_min_travel``; returns the cursor and the next path id."""
+    prev_patch, prev_ax = None, None
+    for p, th in zip(ordered, np.split(thick, np.cumsum([len(p.xyz) for p in ordered])[:-1])):
+        if cur is not None:
+            gap = float(np.linalg.norm(p.xyz[0] - cur))
+            if cfg.travel_lift > 0 and (prev_patch is None or prev_patch != p.patch or gap > cfg.lift_min_travel):
+                a0 = prev_ax if prev_ax is not None else p.axis[0]
+                lift_pts = np.stack([cur + cfg.travel_lift * a0, p.xyz[0] + cfg.travel_lift * p.axis[0]])
+                cols.emit(li, -1, lift_pts, np.stack([a0, p.axis[0]]), np.zeros(2), 0.0, np.zeros(2, bool))
+        ext = np.ones(len(p.xyz), bool)
+        ext[0] = False
+        cols.emit(li, path_id, p.xyz, p.axis, th, cfg.line_width, ext)
+        path_id += 1
+        cur, prev_ax, prev_patch = p.xyz[-1], p.axis[-1], p.patch
+    return cur, path_id
+
+
 def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
               config: ToolpathConfig | None = None) -> Toolpaths:
     """Toolpaths for curved layers in print order (SPEC step 11).
@@ -240,88 +309,24 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
     cfg = config or ToolpathConfig()
     if len(layers) == 0:
         raise InputError("layers", "no curved layers to fill with toolpaths")
-    w = cfg.line_width
-    max_edge = cfg.max_edge or w
-    cols: dict[str, list] = {k: [] for k in ("layer", "path", "xyz", "axis", "thickness", "width",
-                                             "extrude")}
+    cols = _Columns()
     below: TriangleSet | None = None
     cur = None
-    path_id = 0
-    n_patches = 0
-    n_skipped = 0
-    n_loops = 0
-
-    def emit(layer: int, path: int, xyz: FloatArray, axis: FloatArray, thick: FloatArray,
-             width: float, extrude: np.ndarray) -> None:
-        """Append waypoints to the output columns."""
-        cols["layer"].append(np.full(len(xyz), layer, np.int64))
-        cols["path"].append(np.full(len(xyz), path, np.int64))
-        cols["xyz"].append(xyz)
-        cols["axis"].append(axis)
-        cols["thickness"].append(thick)
-        cols["width"].append(np.full(len(xyz), width))
-        cols["extrude"].append(extrude)
-
+    path_id = n_patches = n_skipped = n_loops = 0
     for li, layer in enumerate(layers):
-        verts = np.asarray(layer.vertices, np.float64)
-        faces = np.asarray(layer.faces, np.int64)
-        if len(faces) == 0:
+        if len(layer.faces) == 0:
             continue
-        lpd = layer_lpd(layer)
-        if lpd.shape != verts.shape:
-            raise InputError(f"layers[{li}]", "vertex_attributes['lpd'] must be (n_vertices, 3)")
-        all_paths: list[_Path] = []
-        tri_sets: list[TriangleSet | None] = []
-        for patch in split_patches(verts, faces, lpd):
-            if patch.area < cfg.min_patch_area:
-                n_skipped += 1
-                continue
-            patch = refine_patch(patch, max_edge)
-            pid = len(tri_sets)
-            tri_sets.append(TriangleSet(patch.vertices, patch.faces))
-            all_paths += _patch_paths(patch, pid, li, cfg)
-            n_patches += 1
-        if not all_paths:
-            below = TriangleSet(verts, faces)
-            continue
-        start = cur if cur is not None else all_paths[0].xyz[0]
-        ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops), tri_sets, cfg)
-        n_loops += sum(p.closed for p in all_paths)
-        # thickness for all waypoints of the layer at once
-        lengths = [len(p.xyz) for p in ordered]
-        xyz_all = np.concatenate([p.xyz for p in ordered])
-        ax_all = np.concatenate([p.axis for p in ordered])
-        thick_all = layer_thickness(xyz_all, ax_all, below, platform_z, cfg.max_thickness,
-                                    cfg.first_layer_max_thickness)
-        splits = np.cumsum(lengths)[:-1]
-        prev_patch = None
-        prev_ax = None
-        for p, th in zip(ordered, np.split(thick_all, splits)):
-            if cur is not None:
-                gap = float(np.linalg.norm(p.xyz[0] - cur))
-                lift = cfg.travel_lift > 0 and (prev_patch is None or prev_patch != p.patch
-                                                or gap > cfg.lift_min_travel)
-                if lift:
-                    a0 = prev_ax if prev_ax is not None else p.axis[0]
-                    lift_pts = np.stack([cur + cfg.travel_lift * a0, p.xyz[0] + cfg.travel_lift * p.axis[0]])
-                    emit(li, -1, lift_pts, np.stack([a0, p.axis[0]]), np.zeros(2), 0.0, np.zeros(2, bool))
-            ext = np.ones(len(p.xyz), bool)
-            ext[0] = False
-            emit(li, path_id, p.xyz, p.axis, th, w, ext)
-            path_id += 1
-            cur = p.xyz[-1]
-            prev_ax = p.axis[-1]
-            prev_patch = p.patch
-        below = TriangleSet(verts, faces)
-    if not cols["xyz"]:
+        ordered, filled, skipped, loops = _layer_paths(layer, li, cfg, cur, n_loops)
+        n_patches, n_skipped, n_loops = n_patches + filled, n_skipped + skipped, n_loops + loops
+        if ordered:
+            xyz, ax = np.concatenate([p.xyz for p in ordered]), np.concatenate([p.axis for p in ordered])
+            thick = layer_thickness(xyz, ax, below, platform_z, cfg.max_thickness, cfg.first_layer_max_thickness)
+            cur, path_id = _emit_layer(cols, li, ordered, thick, cur, path_id, cfg)
+        below = TriangleSet(np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64))
+    if not cols.cols["xyz"]:
         raise InputError("layers", "the layers are too small for any toolpath "
-                         f"(line width {w} mm); check units or reduce toolpath.line_width")
-    tp = Toolpaths(
-        layer=np.concatenate(cols["layer"]), path=np.concatenate(cols["path"]),
-        xyz=np.concatenate(cols["xyz"]), axis=_normalise(np.concatenate(cols["axis"])),
-        thickness=np.concatenate(cols["thickness"]), width=np.concatenate(cols["width"]),
-        extrude=np.concatenate(cols["extrude"]),
-    )
+                         f"(line width {cfg.line_width} mm); check units or reduce toolpath.line_width")
+    tp = cols.toolpaths()
     isovalues = [layer.metadata.get("isovalue") if hasattr(layer, "metadata") else None for layer in layers]
     tp.attrs = {"config": cfg.model_dump(), "platform_z": float(platform_z), "n_input_layers": len(layers),
                 "isovalues": [None if v is None else float(v) for v in isovalues],

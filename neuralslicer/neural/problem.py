@@ -1,0 +1,213 @@
+"""The optimisation problem: the cage, its ARAP factor, B and T mapped to cage tets, and every loss term."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from neuralslicer.fea.samples import StressSamples
+from neuralslicer.metrics import overhang_area_fraction, strength_satisfaction
+from neuralslicer.neural import losses as L
+from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.neural.deformation import ArapDeformation
+from neuralslicer.neural.device import resolve_device, resolve_dtype
+from neuralslicer.neural.field import CageGeometry, field_gradient, unit
+from neuralslicer.neural.head_collision import CollisionPool, HeadCollision, HeadShape
+from neuralslicer.neural.networks import DeformationFields
+from neuralslicer.samples import SurfaceSamples
+
+
+class FieldProblem:
+    """Everything fixed during the optimisation: cage, ARAP factor, samples mapped to cage tets."""
+
+    def __init__(self, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
+                 stress: StressSamples | None, config: NeuralConfig, platform_z: float | None,
+                 collision_pool: CollisionPool | None = None) -> None:
+        """Map B (and T) to the cage, factor the ARAP system, build the collision terms."""
+        self.config = config
+        self.phi = math.radians(config.apex_deg())
+        self.device = resolve_device(config.device)
+        self.dtype = resolve_dtype(config.dtype)
+        self.geometry = CageGeometry.build(cage_vertices, cage_tets)
+        g = self.geometry
+        self.platform_z = float(platform_z) if platform_z is not None else None
+        self.arap = ArapDeformation(g.vertices, g.tets, config.deformation, self.platform_z)
+        dev, dt = self.device, self.dtype
+
+        def T(a: np.ndarray, dtype: torch.dtype = dt) -> torch.Tensor:
+            """Array -> tensor on the problem's device."""
+            return torch.as_tensor(np.asarray(a), dtype=dtype, device=dev)
+
+        self.tets_t = T(g.tets, torch.int64)
+        self.bary_grads_t = T(g.bary_grads)
+        self.centroids_t = T(g.centroids)
+        self.pairs_t = T(g.pairs, torch.int64)
+        self.pair_normals_t = T(g.pair_normals)
+        self.pair_weights_t = T(0.5 * (g.volumes[g.pairs[:, 0]] + g.volumes[g.pairs[:, 1]]))
+        # surface samples B (platform points kept as kNN positions, excluded from SF/PO)
+        pts = np.asarray(samples.points, dtype=np.float64).reshape(-1, 3)
+        on_pf = np.asarray(samples.on_platform, dtype=bool)
+        active = np.flatnonzero(~on_pf)
+        self.b_active = active
+        self.b_tet = g.locate(pts[active])
+        self.b_tet_t = T(self.b_tet, torch.int64)
+        self.b_points_t = T(pts[active])
+        self.b_all_t = T(pts)
+        self.b_normals = np.asarray(samples.normals, dtype=np.float64)[active]
+        self.b_normals_t = T(self.b_normals)
+        self.b_areas = np.asarray(samples.areas, dtype=np.float64)[active]
+        self.b_areas_t = T(self.b_areas)
+        knn = np.asarray(samples.knn, dtype=np.int64)
+        self.b_knn_t = T(knn[active], torch.int64)
+        if len(active) and knn.size:
+            dist = np.linalg.norm(pts[knn[active]] - pts[active][:, None, :], axis=2)
+            self.po_length = float(max(dist.mean(), 1e-12))
+        else:
+            self.po_length = 1.0
+        # stress samples T
+        if stress is not None and len(stress.points):
+            self.t_tet = g.locate(np.asarray(stress.points, dtype=np.float64).reshape(-1, 3))
+            self.t_tau = np.asarray(stress.tau_max, dtype=np.float64)
+            self.t_volumes = np.asarray(stress.volumes, dtype=np.float64)
+        else:
+            self.t_tet = np.zeros(0, np.int64)
+            self.t_tau = np.zeros((0, 3))
+            self.t_volumes = np.zeros(0)
+        self.t_tet_t = T(self.t_tet, torch.int64)
+        self.t_tau_t = T(self.t_tau)
+        self.t_volumes_t = T(self.t_volumes)
+        self.head = self._head_collision(collision_pool)
+
+    def _head_collision(self, pool: CollisionPool | None) -> HeadCollision | None:
+        """L_GC on the pool of solid points (None when its weight is 0); the pool is required then."""
+        cl = self.config.loss
+        if cl.w_gc <= 0:
+            return None
+        if pool is None or len(pool.points) == 0:
+            raise ValueError("the global collision term (w_gc > 0) needs a collision_pool of points in the solid")
+        tet, bary = self.geometry.barycentric(pool.points)
+        head = HeadShape.from_nozzle(cl.head, cl.head_min_height)
+        clearance = cl.gc_clearance if cl.gc_clearance is not None else min(1.5 * pool.spacing, cl.head.cone_length)
+        return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
+                             cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype)
+
+    def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
+        """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
+        with torch.no_grad():
+            G, _, _ = self.height(fields)
+            return G, field_gradient(G, self.tets_t, self.bary_grads_t)
+
+    def refresh_collisions(self, fields: DeformationFields) -> int:
+        """Search the pairs near collision for the current weights (L_GC's active set); their number."""
+        return 0 if self.head is None else self.head.refresh(*self.field(fields))
+
+    def head_collisions(self, G: np.ndarray) -> dict[str, int]:
+        """Collisions of the head over the whole pool for a field G (n,) at the cage vertices."""
+        if self.head is None:
+            return {}
+        Gt = torch.as_tensor(G, dtype=self.dtype, device=self.device)
+        return self.head.count(Gt, field_gradient(Gt, self.tets_t, self.bary_grads_t))
+
+    def new_fields(self) -> DeformationFields:
+        """Fresh identity-initialised networks (uses the torch RNG) on the problem's device/dtype."""
+        bounds = np.stack([self.geometry.vertices.min(0), self.geometry.vertices.max(0)])
+        return DeformationFields(self.config.network_config(), bounds).to(self.device, self.dtype)
+
+    def height(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(G at cage vertices (n,), unit quaternions (m,4), scales (m,3)) for the current weights."""
+        q, s = fields(self.centroids_t)
+        return self.arap.deformed_height(q, s), q, s
+
+    def evaluate(self, fields: DeformationFields) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """(total weighted loss, every term incl. L_CA) for the current network weights."""
+        total, terms, _ = self.evaluate_with_excess(fields)
+        return total, terms
+
+    def evaluate_with_excess(
+        self, fields: DeformationFields
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None]:
+        """(total, terms, per-pair collision excess angle (None when the collision term is off))."""
+        cl = self.config.loss
+        G, q, s = self.height(fields)
+        grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+        d = unit(grad)
+        terms: dict[str, torch.Tensor] = {}
+        zero = G.new_zeros(())
+        d_b = d[self.b_tet_t]
+        terms["sf"] = (L.support_free_loss(d_b, self.b_normals_t, self.b_areas_t,
+                                           math.radians(cl.alpha_deg), cl.k_sf)
+                       if cl.w_sf > 0 else zero)
+        terms["sr"] = (L.strength_loss(d[self.t_tet_t], self.t_tau_t, self.t_volumes_t,
+                                       math.radians(cl.beta_deg), cl.k_sr)
+                       if cl.w_sr > 0 and len(self.t_tet) else zero)
+        terms["po"] = (L.point_overhang_loss(d_b, self.b_points_t, self.b_knn_t, self.b_all_t,
+                                             self.b_areas_t, self.po_length)
+                       if cl.w_po > 0 and self.b_knn_t.numel() else zero)
+        terms["hs"] = L.harmonic_scale_loss(s, self.pairs_t, self.pair_weights_t) if cl.w_hs > 0 else zero
+        terms["hq"] = L.harmonic_quaternion_loss(q, self.pairs_t, self.pair_weights_t) if cl.w_hq > 0 else zero
+        terms["gc"] = self.head.loss(G, grad) if self.head is not None else zero
+        excess = None
+        if cl.collision:
+            excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
+            terms["ca"] = torch.relu(excess).mean() if excess.numel() else zero
+        else:
+            terms["ca"] = zero
+        total = (cl.w_sf * terms["sf"] + cl.w_sr * terms["sr"] + cl.w_po * terms["po"]
+                 + cl.w_hs * terms["hs"] + cl.w_hq * terms["hq"] + cl.w_gc * terms["gc"])
+        return total, terms, excess
+
+    def collision_excess(self, fields: DeformationFields) -> torch.Tensor:
+        """Per-pair collision excess angle (rad, > 0 violates) in the working dtype, with its graph."""
+        G, _, _ = self.height(fields)
+        grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+        return L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
+
+    def collision_excess64(self, fields: DeformationFields) -> np.ndarray:
+        """Per-pair collision excess angle of the field the result stores (float64 deformation)."""
+        with torch.no_grad():
+            q, s = fields(self.centroids_t)
+            G = self.arap.deformed_height(q.double(), s.double()).cpu().numpy()
+        return self.excess_of(G)
+
+    def excess_of(self, G: np.ndarray) -> np.ndarray:
+        """Per-pair collision excess angle (rad, float64) of a field G (n,) at the cage vertices."""
+        g = self.geometry
+        grad = np.einsum("ei,eij->ej", np.asarray(G, dtype=np.float64)[g.tets], g.bary_grads)
+        e = L.collision_excess(torch.from_numpy(grad), torch.from_numpy(g.pairs),
+                               torch.from_numpy(g.pair_normals), self.phi)
+        return e.numpy()
+
+    def constraints_met(self, fields: DeformationFields) -> bool:
+        """Support-free within ``optim.target_overhang`` (area fraction of B) and no head collision
+        (none in the pool with the head grown by half its clearance); never with a strength objective,
+        which has no satisfied state (always False when target_overhang is 0 or SF is off). L_CA = 0 is
+        the caller's part: the DC3 correction before each evaluation reports it."""
+        cl, oc = self.config.loss, self.config.optim
+        if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
+            return False
+        G, grad = self.field(fields)
+        d = unit(grad[self.b_tet_t]).double().cpu().numpy()
+        if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
+                                  cl.alpha_deg) > oc.target_overhang:
+            return False
+        return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
+
+    def planar_lpd_satisfaction(self) -> dict[str, float]:
+        """SF/SR satisfaction of planar layers (d = +z)."""
+        m = len(self.geometry.tets)
+        return self.satisfaction(np.tile([0.0, 0.0, 1.0], (m, 1)))
+
+    def satisfaction(self, lpd: np.ndarray) -> dict[str, float]:
+        """Fraction of B area supported (-n.d <= sin a), overhang fraction, fraction of T volume
+        with |d.tau| <= sin b, for per-tet unit LPDs (m,3)."""
+        cl = self.config.loss
+        out: dict[str, float] = {}
+        if len(self.b_tet):  # B holds the non-platform samples only
+            over = overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(self.b_tet), bool),
+                                          lpd[self.b_tet], cl.alpha_deg)
+            out["sf_supported_fraction"] = 1.0 - over
+            out["overhang_area_fraction"] = over
+        if len(self.t_tet):
+            out["sr_satisfied_fraction"] = strength_satisfaction(self.t_tau, self.t_volumes, lpd[self.t_tet], cl.beta_deg)
+        return out
