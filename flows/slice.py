@@ -83,7 +83,7 @@ def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRe
     blended = log.run(field_blend_task, store=store, cage=cage, field=field_ref, planar=t)
     layers = log.run(layers_task, store=store, model=model, cage=cage, field=blended, config=config.layers)
     printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
-                       machine=machine)
+                       machine=machine, t_max=config.layers.t_max)
     return blended, layers, printing
 
 
@@ -134,9 +134,8 @@ def slice_pipeline(
             objectives=objectives, config=neural, user_field=user,
         )
         layers = log.run(layers_task, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
-        printing = log.run(
-            toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath, machine=machine
-        )
+        printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
+                           machine=machine, t_max=config.layers.t_max)
         factor = config.collision_smoothness_factor ** attempt
         attempts.append(("optimised" if attempt == 0 else f"re-optimised, harmonic x{factor:g} + CA", field_ref, printing))
         collisions = n_collisions(printing)

@@ -25,7 +25,7 @@ STEP_VERSIONS = {
     "field": "2",
     "field_blend": "1",
     "layers": "4",
-    "toolpaths": "2",
+    "toolpaths": "3",
     "verify": "1",
     "export": "3",
 }

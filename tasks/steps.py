@@ -94,10 +94,10 @@ def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifact
 
 @pipeline_task("toolpaths")
 def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig,
-                   machine: MachineProfile) -> tuple[dict, dict]:
+                   machine: MachineProfile, t_max: float) -> tuple[dict, dict]:
     """Toolpaths on every layer, the machine program (IK, extrusion, collisions) and their metrics."""
     solid = read_solid(model)
     tp, program, metrics, collisions = plan_print(read_layers(layers).meshes, platform_z=solid.platform_z,
-                                                  solid_H=solid.H, toolpath_cfg=config, profile=machine)
+                                                  solid_H=solid.H, toolpath_cfg=config, profile=machine, t_max=t_max)
     get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("collisions", 0))
     return encode_print(tp, program, metrics, collisions)

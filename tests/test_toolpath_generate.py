@@ -79,7 +79,11 @@ def test_curved_layers_axis_and_thickness(cap_paths):
     later = on & (tp.layer > 0)
     assert np.allclose(tp.thickness[later], 0.5, atol=0.01)
     first = on & (tp.layer == 0)
-    assert np.allclose(tp.thickness[first], ToolpathConfig().first_layer_max_thickness)
+    assert np.allclose(tp.thickness[first], 1.0)  # capped at t_max (default 1 mm)
+    # the caps follow the layers' t_max, the one place the thickness limits are set
+    thin = toolpaths(layers, platform_z=-20.0, t_max=0.8)
+    assert np.allclose(thin.thickness[(thin.path >= 0) & (thin.layer == 0)], 0.8)
+    assert thin.thickness[thin.path >= 0].max() <= 1.5 * 0.8 + 1e-12
 
 
 def test_tilted_stack_thickness_along_the_normal():

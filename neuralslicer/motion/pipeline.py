@@ -8,6 +8,7 @@ from typing import Callable, Sequence
 import numpy as np
 import trimesh
 
+from neuralslicer.layers import LayerConfig
 from neuralslicer.motion.collision import CollisionReport, check_collisions
 from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
@@ -19,21 +20,22 @@ from neuralslicer.toolpath.types import Toolpaths
 def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
                solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
                toolpath_cfg: ToolpathConfig | None = None,
-               profile: MachineProfile | str | None = None
+               profile: MachineProfile | str | None = None, t_max: float | None = None,
                ) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
     """Toolpaths, machine program, metrics and the head's collisions for curved layers in print order.
 
     layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
     platform_z : platform height; solid_H : optional implicit solid (H < 0 inside) used to count
     waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a YAML path
-    (default ``table_bc_linuxcnc``). Metrics: estimated_print_time_s, toolpath_length_mm,
+    (default ``table_bc_linuxcnc``); t_max : the layers' largest thickness (default ``LayerConfig().t_max``),
+    which caps the measured bead thickness. Metrics: estimated_print_time_s, toolpath_length_mm,
     n_waypoints, material_mm3, collisions, rotary statistics, timings.
     """
     if profile is None or isinstance(profile, (str, Path)):
         profile = load_profile(profile or "table_bc_linuxcnc")
     cfg = toolpath_cfg or ToolpathConfig()
     t0 = time.perf_counter()
-    tp = toolpaths(layers, platform_z=platform_z, config=cfg)
+    tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max)
     t1 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     t2 = time.perf_counter()

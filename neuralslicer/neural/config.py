@@ -216,6 +216,18 @@ class NeuralConfig(BaseModel):
         loss = self.loss.model_copy(update={"head": nozzle, "head_min_height": max(0.3, float(min_height))})
         return self.model_copy(update={"loss": loss})
 
+    def for_objectives(self, objectives: list[str]) -> "NeuralConfig":
+        """This config with the weights of the objectives not asked for set to zero (sf, po, sr, gc), and
+        the local collision constraint on when ca is asked for."""
+        loss = self.loss.model_copy(update={
+            "w_sf": self.loss.w_sf if "sf" in objectives else 0.0,
+            "w_po": self.loss.w_po if "po" in objectives else 0.0,
+            "w_sr": (self.loss.w_sr or 1.0) if "sr" in objectives else 0.0,
+            "w_gc": (self.loss.w_gc or 1.0) if "gc" in objectives else 0.0,
+            "collision": "ca" in objectives,
+        })
+        return self.model_copy(update={"loss": loss})
+
     def apex_deg(self) -> float:
         """The cone apex angle of L_CA: set explicitly, or twice the head's cone half angle."""
         cl = self.loss

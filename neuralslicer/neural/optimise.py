@@ -16,7 +16,7 @@ import random
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -26,7 +26,8 @@ from neuralslicer.fea.samples import StressSamples
 from neuralslicer.neural import losses as L
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.constraints import corrected_evaluation, enforce_collision_constraint, violating_pairs
-from neuralslicer.neural.head_collision import CollisionPool
+from neuralslicer.model.solid import Solid
+from neuralslicer.neural.head_collision import CollisionPool, collision_pool
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, platform_vertices, user_field_on_cage
 from neuralslicer.neural.networks import DeformationFields
 from neuralslicer.neural.problem import FieldProblem
@@ -343,6 +344,22 @@ def optimise_field(
             st.final_corrections += enforce_collision_constraint(problem, st.fields)
         save()
         return field_result(problem, st, t0)
+
+
+def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
+                       stress: StressSamples | None, objectives: list[str], config: NeuralConfig,
+                       **options: Any) -> FieldResult:
+    """The field step: ``optimise_field`` for the objectives asked for, with L_GC's pool of points drawn
+    from the solid when gc is one of them; ``options`` are optimise_field's (initial guess, callbacks)."""
+    cfg = config.for_objectives(objectives)
+    pool = None
+    if cfg.loss.w_gc > 0:
+        pool = collision_pool(solid.H, solid.bounds, solid.volume(), samples.points, cfg.loss.gc_points,
+                              cfg.loss.gc_spacing, seed=cfg.optim.seed)
+    result = optimise_field(cage_vertices, cage_tets, samples, stress, config=cfg, platform_z=solid.platform_z,
+                            collision_pool=pool, **options)
+    result.attrs.update(objectives=list(objectives), kind="neural")
+    return result
 
 
 def run_loop(problem: FieldProblem, st: LoopState, save: Callable[[], None], progress: ProgressFn | None,

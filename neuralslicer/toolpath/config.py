@@ -43,11 +43,10 @@ class ToolpathConfig(BaseModel):
     #: closed loops alternate direction (a table C axis then unwinds instead of turning once more
     #: per loop around it).
     alternate_loops: bool = True
-    #: thickness used where the ray along -LPD misses everything below, and upper cap for all
-    #: thicknesses (mm).
-    max_thickness: float = Field(1.5, gt=0)
-    #: first layer: distance to the platform along the LPD, capped at this.
-    first_layer_max_thickness: float = Field(1.0, gt=0)
+    #: the measured bead thickness is capped at this multiple of the layers' ``t_max`` (also the value
+    #: where the ray along -LPD misses everything below); the first layer's distance to the platform
+    #: is capped at ``t_max`` itself. The thickness limits live in one place, ``LayerConfig``.
+    thickness_cap_factor: float = Field(1.5, ge=1)
     #: patches whose area is below this (mm^2) are skipped (marching-tet slivers).
     min_patch_area: float = Field(0.05, ge=0)
 

@@ -298,11 +298,12 @@ def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray
 
 
 def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
-              config: ToolpathConfig | None = None) -> Toolpaths:
+              config: ToolpathConfig | None = None, t_max: float = 1.0) -> Toolpaths:
     """Toolpaths for curved layers in print order (SPEC step 11).
 
     layers : trimesh layers in the build frame, faces oriented along the LPD, optional
-    ``vertex_attributes['lpd']`` (n, 3); platform_z : height of the platform plane.
+    ``vertex_attributes['lpd']`` (n, 3); platform_z : height of the platform plane; t_max : the
+    layers' largest acceptable thickness (``LayerConfig.t_max``), which caps the measured thickness.
     Returns waypoints with tool axis (LPD), local thickness, width and extrude flags; travel
     waypoints lifted by ``config.travel_lift`` along the tool axis have ``path = -1``.
     """
@@ -320,7 +321,7 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
         n_patches, n_skipped, n_loops = n_patches + filled, n_skipped + skipped, n_loops + loops
         if ordered:
             xyz, ax = np.concatenate([p.xyz for p in ordered]), np.concatenate([p.axis for p in ordered])
-            thick = layer_thickness(xyz, ax, below, platform_z, cfg.max_thickness, cfg.first_layer_max_thickness)
+            thick = layer_thickness(xyz, ax, below, platform_z, cfg.thickness_cap_factor * t_max, t_max)
             cur, path_id = _emit_layer(cols, li, ordered, thick, cur, path_id, cfg)
         below = TriangleSet(np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64))
     if not cols.cols["xyz"]:
@@ -328,7 +329,8 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
                          f"(line width {cfg.line_width} mm); check units or reduce toolpath.line_width")
     tp = cols.toolpaths()
     isovalues = [layer.metadata.get("isovalue") if hasattr(layer, "metadata") else None for layer in layers]
-    tp.attrs = {"config": cfg.model_dump(), "platform_z": float(platform_z), "n_input_layers": len(layers),
+    tp.attrs = {"config": cfg.model_dump(), "t_max": float(t_max), "platform_z": float(platform_z),
+                "n_input_layers": len(layers),
                 "isovalues": [None if v is None else float(v) for v in isovalues],
                 "n_paths": int(path_id), "n_patches": n_patches, "n_patches_skipped": n_skipped}
     return tp
