@@ -139,10 +139,8 @@ def arch_surface(span: float = 50.0, depth: float = 20.0, rise: float = 25.0, n:
     return trimesh.Trimesh(v, np.concatenate(faces), process=False)
 
 
-def main() -> None:
-    """Write every example folder."""
-    d = HERE / "bracket"
-    d.mkdir(exist_ok=True)
+def write_bracket(d: Path) -> None:
+    """The bracket example: its model files and model.yaml in folder d."""
     bracket_mesh().export(d / "bracket.stl")
     (d / "model.yaml").write_text("""# L-bracket, fixed against a wall (the face y = 0), loaded down at its free end.
 up: z
@@ -158,8 +156,9 @@ fea:
       force_n: [0, 0, -50]
 """)
 
-    d = HERE / "lattice"
-    d.mkdir(exist_ok=True)
+
+def write_lattice(d: Path) -> None:
+    """The lattice example: its model files and model.yaml in folder d."""
     write_segments(d / "lattice.txt", bcc_lattice((3, 3, 3), 10.0), "BCC lattice, 3x3x3 cells of 10 mm")
     (d / "model.yaml").write_text("""# Body-centred-cubic strut lattice: capsules of radius 1 mm.
 up: z
@@ -169,8 +168,9 @@ components:
     radius: 1.0
 """)
 
-    d = HERE / "tubes"
-    d.mkdir(exist_ok=True)
+
+def write_tubes(d: Path) -> None:
+    """The tubes example: its model files and model.yaml in folder d."""
     write_polyline_obj(d / "skeleton.obj", tube_skeleton(), "skeleton of branching tubes (mm)")
     (d / "model.yaml").write_text("""# Branching tubes: convolution surface (Cauchy kernel) of a polyline skeleton.
 up: z
@@ -181,8 +181,9 @@ components:
     c: 0.333           # kernel sharpness 1/mm (default 1/radius)
 """)
 
-    d = HERE / "shell"
-    d.mkdir(exist_ok=True)
+
+def write_shell(d: Path) -> None:
+    """The shell example: its model files and model.yaml in folder d."""
     wavy_vase().export(d / "vase_surface.stl")
     (d / "model.yaml").write_text("""# An open wavy vase surface thickened into a 2 mm shell.
 up: z
@@ -192,8 +193,9 @@ components:
     thickness: 2.0
 """)
 
-    d = HERE / "hybrid"
-    d.mkdir(exist_ok=True)
+
+def write_hybrid(d: Path) -> None:
+    """The hybrid example: its model files and model.yaml in folder d."""
     trimesh.creation.box(bounds=[[-5, -5, 0], [75, 35, 5]]).export(d / "base.stl")
     arch = arch_surface()
     arch.apply_translation([0, 5, 4])
@@ -221,6 +223,18 @@ components:
     file: loops.obj
     radius: 2.0
 """)
+
+
+EXAMPLES = {"bracket": write_bracket, "lattice": write_lattice, "tubes": write_tubes, "shell": write_shell,
+            "hybrid": write_hybrid}
+
+
+def main() -> None:
+    """Write every example folder."""
+    for name, write in EXAMPLES.items():
+        d = HERE / name
+        d.mkdir(exist_ok=True)
+        write(d)
 
 
 if __name__ == "__main__":
