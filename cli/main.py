@@ -9,34 +9,33 @@ from typing import Any
 
 from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
 from cli.studies import add_compare_parser, add_study_parser
-from flows.settings import cache_settings, prefect_environment
+from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
-
-
-def validate_model(spec: Any) -> None:
-    """Read every file of the spec before any output is made: bad input fails here with one line."""
-    from neuralslicer.model.solid import implicit_solid
-
-    implicit_solid(spec)
+from neuralslicer.preflight import MAX_LAYERS
 
 
 def cmd_slice(args: argparse.Namespace) -> int:
     """Slice a model (mesh, .tet or spec YAML) into curved layers and write the output contract."""
+    from neuralslicer.model.solid import implicit_solid
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.preflight import preflight
 
     model = Path(args.model)
     if not model.exists():
         raise InputError(model, "no such file")
-    spec = spec_for_file(model, args.up or "z")
-    if args.up is not None and spec.up != args.up:
-        spec = spec.model_copy(update={"up": args.up})
+    spec = spec_for_file(model, args.up or "z", args.units or "mm")
+    update = {k: v for k, v in (("up", args.up), ("units", args.units)) if v is not None and getattr(spec, k) != v}
+    if update:
+        spec = spec.model_copy(update=update)
     config = build_config(args)
-    validate_model(spec)
     if args.init not in (None, "height", "heat") and not Path(args.init).is_file():
         raise InputError(args.init, "no such file (--init takes height, heat or a file of field values)")
     out_dir = Path(args.out).resolve()
     store = str(args.store or out_dir / "store.zarr")
+    solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
+    needs_fea = config.verify or ("sr" in config.objectives if config.objectives is not None else spec.fea is not None)
+    preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea)
     return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args))
 
 
@@ -46,9 +45,10 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
     from flows.slice import ensure_store, slice_flow
 
     store = ensure_store(store)
+    user_field = args.init if args.init not in (None, "height", "heat") else None
     with cache_settings(store):
-        user_field = args.init if args.init not in (None, "height", "heat") else None
-        summary = slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store, user_field=user_field)
+        summary = with_api_retry(lambda: slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store,
+                                                    user_field=user_field))
     print_summary(summary)
     return 0
 
@@ -121,6 +121,10 @@ def add_slice_parser(sub: Any) -> None:
     add_slicing_options(p)
     p.add_argument("--cage-elements", type=int, default=None, help="target number of cage tets (default 10000)")
     p.add_argument("--init", default=None, help="initial guess: height, heat or a file of values (default height)")
+    p.add_argument("--units", choices=("mm", "cm", "m", "in"), default=None,
+                   help="unit of the model file's coordinates (default mm, or the spec's)")
+    p.add_argument("--force", action="store_true",
+                   help=f"slice even when the layer count estimate exceeds {MAX_LAYERS:,} (a wrong unit, usually)")
     p.set_defaults(func=cmd_slice)
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
-from flows.settings import cache_settings, prefect_environment
+from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
 
 
@@ -45,14 +45,15 @@ def cmd_study(args: argparse.Namespace) -> int:
         store = ArtifactStore(args.store or str(out_dir / "store.zarr")).root
         common = dict(out_dir=str(out_dir), up=args.up, store=store, config=config, dask=args.dask,
                       dask_workers=args.dask_workers, max_workers=args.workers)
+        if args.study == "initial-guess":
+            kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+            run = lambda: initial_guess_study(model=args.model, kinds=kinds, user_field=args.user_field, **common)  # noqa: E731
+        elif args.study == "cages":
+            run = lambda: cage_study(model=args.model, cage_elements=counts, **common)  # noqa: E731
+        else:
+            run = lambda: batch_study(models=list(args.models), **common)  # noqa: E731
         with cache_settings(store):
-            if args.study == "initial-guess":
-                kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
-                study = initial_guess_study(model=args.model, kinds=kinds, user_field=args.user_field, **common)
-            elif args.study == "cages":
-                study = cage_study(model=args.model, cage_elements=counts, **common)
-            else:
-                study = batch_study(models=list(args.models), **common)
+            study = with_api_retry(run)
         print_study(study)
         return 0 if all(b.get("status") == "completed" for b in study["branches"]) else 1
 

@@ -3,7 +3,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from neuralslicer.errors import NeuralSlicerError
+
+T = TypeVar("T")
 
 
 def prefect_environment() -> None:
@@ -13,6 +18,29 @@ def prefect_environment() -> None:
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
     os.environ.setdefault("PREFECT_RESULTS_PERSIST_BY_DEFAULT", "true")
+    # the local API server needs ~6 s on a quiet machine and far longer on a loaded one (20 s by default)
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(API_STARTUP_TIMEOUT_S))
+
+
+API_STARTUP_TIMEOUT_S = 180
+API_START_FAILED = "Timed out while attempting to connect to ephemeral Prefect API server"
+
+
+def with_api_retry(job: Callable[[], T], attempts: int = 2) -> T:
+    """Run a flow; when Prefect's local API server did not start in time (a loaded node), try again,
+    then fail with one line that says what to do."""
+    for attempt in range(attempts):
+        try:
+            return job()
+        except RuntimeError as exc:
+            if API_START_FAILED not in str(exc):
+                raise
+            failure = exc
+    timeout = os.environ.get("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", API_STARTUP_TIMEOUT_S)
+    raise NeuralSlicerError(
+        f"Prefect's local API server did not start within {timeout} s, {attempts} times (a loaded machine?): "
+        "raise PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS or point PREFECT_API_URL at a running server "
+        "(prefect server start), then run the same command again") from failure
 
 
 def result_storage_dir(store: str) -> Path:

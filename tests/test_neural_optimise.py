@@ -255,3 +255,26 @@ def test_a_run_stops_once_the_constraints_are_met(problem):
     assert res.attrs["collision"]["violating_pairs"] == 0
     # the same run without the rule goes on to its budget
     assert _run(problem, _cfg(max_steps=res.steps + 20, target_loss=0.0)).steps == res.steps + 20
+
+
+class _Planted:
+    """An object whose unpickling runs a command (what a planted checkpoint would carry)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+        return (os.system, (f"touch {self.marker}",))
+
+
+def test_a_planted_checkpoint_cannot_run_code(problem, tmp_path):
+    import io
+
+    marker = tmp_path / "owned"
+    buf = io.BytesIO()
+    torch.save({"version": 2, "fields": _Planted(str(marker))}, buf)
+    with pytest.warns(RuntimeWarning, match="older format was ignored"):
+        r = _run(problem, _cfg(max_steps=5), load_checkpoint=lambda: buf.getvalue())
+    assert not marker.exists()
+    assert r.steps == 5  # started over

@@ -12,6 +12,7 @@ import contextlib
 import copy
 import io
 import math
+import pickle
 import random
 import time
 import warnings
@@ -34,7 +35,7 @@ from neuralslicer.neural.problem import FieldProblem
 from neuralslicer.samples import SurfaceSamples
 
 TERMS = ("sf", "sr", "po", "hs", "hq", "gc", "ca")
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: tensors and plain values only (weights_only loading)
 ProgressFn = Callable[[int, dict], None]
 Scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau
 
@@ -122,15 +123,23 @@ class LoopState:
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "step": self.step, "converged": self.converged, "history": self.history,
             "final_corrections": self.final_corrections, "best": self.best_state, "rollbacks": self.rollbacks,
-            "trend": self.trend, "pretrain_history": self.pretrain_history, "rng": _rng_state(),
+            "trend": self.trend, "pretrain_history": torch.from_numpy(np.asarray(self.pretrain_history, np.float64)),
+            "rng": _rng_state(),
             "grad_scale": self.grad_scale,
             "seed": config.optim.seed, "config": config.model_dump(mode="json"),
         }, buf)
         return buf.getvalue()
 
-    def restore(self, blob: bytes, device: torch.device) -> None:
-        """Continue from a checkpoint written by to_bytes (also the RNG states)."""
-        state = torch.load(io.BytesIO(blob), map_location=device, weights_only=False)
+    def restore(self, blob: bytes, device: torch.device) -> bool:
+        """Continue from a checkpoint written by to_bytes (also the RNG states); False (and nothing
+        restored) for a checkpoint of an older format. Only tensors and plain values are read
+        (``weights_only``): a planted checkpoint cannot run code."""
+        try:
+            state = torch.load(io.BytesIO(blob), map_location=device, weights_only=True)
+        except pickle.UnpicklingError:
+            return False
+        if state.get("version") != CHECKPOINT_VERSION:
+            return False
         self.fields.load_state_dict(state["fields"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
@@ -139,11 +148,10 @@ class LoopState:
         self.best_state, self.rollbacks = state.get("best"), int(state.get("rollbacks", 0))
         self.trend = list(state.get("trend", []))
         self.history = {k: list(v) for k, v in state["history"].items()}
-        for k in TERMS:  # checkpoints written before a term existed
-            self.history.setdefault(k, [0.0] * len(self.history["total"]))
-        self.pretrain_history = np.asarray(state["pretrain_history"])
+        self.pretrain_history = state["pretrain_history"].cpu().numpy()
         self.grad_scale = state.get("grad_scale")
         _set_rng_state(state["rng"])
+        return True
 
     def prepare(self, weight: float) -> None:
         """Running minimum and (for old checkpoints) the smoothed trend of the history so far."""
@@ -272,14 +280,18 @@ def _trend_of(totals: list[float], weight: float) -> list[float]:
 
 
 def _rng_state() -> dict:
-    """RNG states of torch, numpy and python."""
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    """RNG states of torch, numpy and python, as tensors and plain values (loadable with weights_only)."""
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    return {"torch": torch.get_rng_state(), "python": random.getstate(),
+            "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                      "has_gauss": int(has_gauss), "gauss": float(gauss)}}
 
 
 def _set_rng_state(state: dict) -> None:
     """Restore the RNG states saved by _rng_state."""
     torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
+    n = state["numpy"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["gauss"]))
     random.setstate(state["python"])
 
 
@@ -328,9 +340,11 @@ def optimise_field(
         problem = FieldProblem(cage_vertices, cage_tets, samples, stress, config, platform_z, collision_pool)
         st = LoopState.start(problem)
         blob = load_checkpoint() if load_checkpoint is not None else None
-        if blob:
-            st.restore(blob, problem.device)
-        else:
+        if blob and not st.restore(blob, problem.device):
+            warnings.warn("a checkpoint of an older format was ignored: the optimisation starts over", RuntimeWarning,
+                          stacklevel=2)
+            blob = None
+        if not blob:
             target = initial_target(problem, user_field, user_field_points)
             if target is not None:
                 st.pretrain_history = pretrain(problem, st.fields, target, progress)

@@ -1,0 +1,117 @@
+"""Checks of everything a user can get wrong, run before any work starts: one InputError each."""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+from neuralslicer.config import SliceConfig
+from neuralslicer.errors import InputError
+from neuralslicer.fea.grid import SolidLike, voxelize
+from neuralslicer.fea.solver import check_spec, fixed_dofs, load_vector
+from neuralslicer.fea.spec import FEASpec
+from neuralslicer.model.solid import Solid
+from neuralslicer.model.spec import ModelSpec
+from neuralslicer.motion.profile import MachineProfile, load_profile
+
+#: a model whose bounding-box diagonal is outside this range (mm) was most likely read in the wrong unit
+PLAUSIBLE_SIZE_MM = (1.0, 5000.0)
+#: more layers than this are refused unless forced (a wrong unit or layer height, not a real print)
+MAX_LAYERS = 5000
+
+
+def check_output_dir(out_dir: Path, inputs: list[Path], option: str = "--out") -> None:
+    """The output folder can be created and written, is not a file, and holds none of the inputs."""
+    out_dir = Path(out_dir).resolve()
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(option, f"{out_dir} is a file, not a folder")
+    for f in inputs:
+        f = Path(f).resolve()
+        if f == out_dir or out_dir in f.parents:
+            raise InputError(option, f"{out_dir} holds the input {f}; the outputs would overwrite or remove it: "
+                             "choose another folder")
+    _check_writable(out_dir, option)
+
+
+def check_store_location(store: str, option: str = "--store") -> None:
+    """A local store is a folder (or does not exist yet) in a writable place; remote URLs are not checked."""
+    if "://" in store and not store.startswith("file://"):
+        return
+    path = Path(store.removeprefix("file://")).resolve()
+    if path.exists() and not path.is_dir():
+        raise InputError(option, f"{path} is a file, not a store folder")
+    _check_writable(path, option)
+
+
+def _check_writable(path: Path, option: str) -> None:
+    """The folder or its nearest existing ancestor accepts new files."""
+    probe = path
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(option, f"{probe} is a file, so {path} cannot be created")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise InputError(option, f"{probe} is not writable")
+
+
+def check_scale(solid: Solid, spec: ModelSpec) -> float:
+    """The model's bounding-box diagonal in mm; an implausible size suggests the unit to use."""
+    lo, hi = solid.bounds
+    diag = float(math.dist(lo, hi))
+    small, large = PLAUSIBLE_SIZE_MM
+    if diag < small or diag > large:
+        factors = {"m": 1000.0, "cm": 10.0, "in": 25.4, "mm": 1.0}
+        raw = diag / factors[spec.units]
+        hint = [u for u, f in factors.items() if small <= raw * f <= large and u != spec.units]
+        raise InputError("model", f"the model is {diag:.4g} mm across (bounding-box diagonal), implausible for a "
+                         f"print in {spec.units}: its coordinates are probably in another unit; give "
+                         + (" or ".join(f"--units {u}" for u in hint) if hint else "the right --units")
+                         + " (or 'units:' in a spec)")
+    return diag
+
+
+def check_layer_count(solid: Solid, config: SliceConfig, limit: int = MAX_LAYERS) -> int:
+    """Estimated layer count (model height / layer height); refused above ``limit`` or below 2."""
+    height = float(solid.bounds[1][2] - solid.platform_z)
+    h = config.layers.layer_height
+    n = math.ceil(height / h)
+    if n > limit:
+        raise InputError("--layer-height", f"{h:g} mm on a model {height:.4g} mm tall makes about {n:,} layers "
+                         f"(limit {limit:,}); check the units or the layer height, or pass --force")
+    if n < 2:
+        raise InputError("--layer-height", f"{h:g} mm is at least the model's height ({height:.4g} mm): "
+                         "no curved layers to print; use a smaller layer height")
+    if not config.layers.t_min <= h <= config.layers.t_max:
+        raise InputError("--layer-height", f"{h:g} mm is outside the layers' thickness range "
+                         f"[{config.layers.t_min:g}, {config.layers.t_max:g}] mm (layers.t_min/t_max in --config)")
+    return n
+
+
+def check_machine(name: str) -> MachineProfile:
+    """The machine profile, loaded (an error names --machine)."""
+    try:
+        return load_profile(name)
+    except InputError as exc:
+        raise InputError(f"--machine {exc.where}", exc.message) from None
+
+
+def check_fea_regions(solid: SolidLike, spec: FEASpec) -> None:
+    """Supports and loads select something of the voxel model the FEA will build."""
+    check_spec(spec)
+    grid = voxelize(solid, spec.voxels)
+    fixed_dofs(grid, spec.supports, float(solid.platform_z))
+    load_vector(grid, spec.loads, float(solid.platform_z))
+
+
+def preflight(spec: ModelSpec, solid: Solid, config: SliceConfig, out_dir: Path, store: str, force: bool = False,
+              needs_fea: bool = False) -> None:
+    """Every check of a slice before any work starts (outputs, store, scale, layers, machine, FEA)."""
+    check_output_dir(out_dir, spec.files() + ([spec.source] if spec.source is not None else []))
+    check_store_location(store)
+    check_scale(solid, spec)
+    check_layer_count(solid, config, limit=10**9 if force else MAX_LAYERS)
+    check_machine(config.machine)
+    if needs_fea:
+        if spec.fea is None:
+            raise InputError(spec.source or "model", "strength (sr) or --verify needs the spec's 'fea' block")
+        check_fea_regions(solid, spec.fea)

@@ -1,0 +1,152 @@
+"""What a user can get wrong is refused before any work starts: one line, exit 2, nothing left behind."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+import trimesh
+import yaml
+
+from cli.main import main
+from conftest import l_part_mesh
+
+
+def refuse(capsys: pytest.CaptureFixture, argv: list[str], *expected: str) -> str:
+    """Run the CLI; it must exit 2 within 15 s with one error line containing every expected text."""
+    start = time.perf_counter()
+    assert main(argv) == 2
+    assert time.perf_counter() - start < 15
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("neuralslicer: error: "), err
+    for text in expected:
+        assert text in err, err
+    return err
+
+
+@pytest.fixture(scope="module")
+def part(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The L part (20 mm) as an STL file."""
+    path = tmp_path_factory.mktemp("pre") / "part.stl"
+    l_part_mesh().export(path)
+    return path
+
+
+def scaled(tmp_path: Path, factor: float) -> Path:
+    """The L part with its coordinates multiplied by factor."""
+    mesh = l_part_mesh()
+    mesh.apply_scale(factor)
+    path = tmp_path / f"part_x{factor:g}.stl"
+    mesh.export(path)
+    return path
+
+
+def test_output_folder_that_is_a_file(tmp_path, part, capsys):
+    out = tmp_path / "out"
+    out.write_text("not a folder")
+    refuse(capsys, ["slice", str(part), "--out", str(out)], "--out", "is a file")
+    assert out.read_text() == "not a folder"
+
+
+def test_output_folder_holding_the_input(tmp_path, capsys):
+    model = tmp_path / "part.stl"
+    l_part_mesh().export(model)
+    refuse(capsys, ["slice", str(model), "--out", str(tmp_path)], "--out", "holds the input")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["part.stl"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_output_folder_in_a_read_only_folder(tmp_path, part, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        refuse(capsys, ["slice", str(part), "--out", str(locked / "out")], "--out", "not writable")
+    finally:
+        locked.chmod(0o755)
+
+
+def test_store_that_is_a_file(tmp_path, part, capsys):
+    store = tmp_path / "store.zarr"
+    store.write_text("x")
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "out"), "--store", str(store)], "--store", "is a file")
+    assert not (tmp_path / "out").exists()
+
+
+def test_millimetres_read_as_metres_suggest_the_unit(tmp_path, capsys):
+    tiny = scaled(tmp_path, 0.001)
+    err = refuse(capsys, ["slice", str(tiny), "--out", str(tmp_path / "out")], "implausible", "--units m")
+    assert "0.0" in err and not (tmp_path / "out").exists()
+
+
+def test_a_model_too_large_for_millimetres(tmp_path, capsys):
+    huge = scaled(tmp_path, 1000.0)
+    refuse(capsys, ["slice", str(huge), "--out", str(tmp_path / "out")], "implausible")
+    assert not (tmp_path / "out").exists()
+
+
+def test_units_option_rescales_the_model(tmp_path):
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+
+    tiny = scaled(tmp_path, 0.001)
+    solid = implicit_solid(spec_for_file(tiny, "z", "m"))
+    size = solid.bounds[1] - solid.bounds[0]
+    assert size == pytest.approx([20.0, 10.0, 16.0], abs=0.5)
+
+
+def test_layer_height_beyond_the_model_or_the_thickness_range(tmp_path, part, capsys):
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "a"), "--layer-height", "50"], "--layer-height",
+           "model's height")
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "b"), "--layer-height", "0.2"], "--layer-height",
+           "thickness range")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_too_many_layers_need_force(tmp_path, capsys):
+    from neuralslicer.config import SliceConfig
+    from neuralslicer.errors import InputError
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.preflight import check_layer_count
+
+    solid = implicit_solid(spec_for_file(scaled(tmp_path, 100.0), "z"))   # 1.6 m tall: 2,000 layers of 0.8 mm
+    config = SliceConfig()
+    assert check_layer_count(solid, config) == pytest.approx(2000, abs=2)
+    with pytest.raises(InputError, match="--force"):
+        check_layer_count(solid, config, limit=1000)
+
+
+def test_unknown_machine_profile(tmp_path, part, capsys):
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "out"), "--machine", "no_such_machine"],
+           "--machine", "no such machine profile")
+    assert not (tmp_path / "out").exists()
+
+
+def test_fea_regions_that_select_nothing(tmp_path, capsys):
+    mesh = tmp_path / "part.stl"
+    l_part_mesh().export(mesh)
+    spec = tmp_path / "part.yaml"
+    spec.write_text(yaml.safe_dump({
+        "components": [{"type": "mesh", "file": "part.stl"}],
+        "fea": {"material": {"youngs_modulus_mpa": 2000, "poisson_ratio": 0.3}, "voxels": 20000,
+                "supports": [{"box": [[100, 100, 100], [110, 110, 110]]}],
+                "loads": [{"box": [[15, -1, 12], [21, 11, 17]], "force_n": [0, 0, -10]}]},
+    }))
+    refuse(capsys, ["slice", str(spec), "--out", str(tmp_path / "out")], "fea.supports")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_mesh_with_inverted_winding_is_the_same_solid(tmp_path):
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+
+    mesh = l_part_mesh()
+    inverted = trimesh.Trimesh(mesh.vertices, mesh.faces[:, ::-1], process=False)
+    a, b = tmp_path / "a.stl", tmp_path / "b.stl"
+    mesh.export(a)
+    inverted.export(b)
+    sa, sb = implicit_solid(spec_for_file(a, "z")), implicit_solid(spec_for_file(b, "z"))
+    probe = [[4.0, 5.0, 6.0], [15.0, 5.0, 14.0], [15.0, 5.0, 6.0], [-1.0, 5.0, 5.0]]
+    assert (sa.H(probe) < 0).tolist() == (sb.H(probe) < 0).tolist() == [True, True, False, False]
