@@ -92,7 +92,13 @@ def build_config(options: argparse.Namespace) -> SliceConfig:
     init = getattr(options, "init", None)
     if init is not None:
         data["neural"]["init"]["kind"] = init if init in ("height", "heat") else "user"
-    return SliceConfig.checked(data, "options")
+    try:
+        return SliceConfig.checked(data, "options")
+    except InputError as exc:  # name the option that set the key, else the key in the --config file
+        key = exc.where.removeprefix("options: ")
+        named = [name for name, keys in CONFIG_KEYS.items() if ".".join(keys) == key and getattr(options, name, None) is not None]
+        where = f"--{named[0].replace('_', '-')}" if named else f"{options.config or 'configuration'}: {key}"
+        raise InputError(where, exc.message) from None
 
 
 def run_in_out_dir(out_dir: Path, job: Callable[[], int]) -> int:

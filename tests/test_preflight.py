@@ -150,3 +150,12 @@ def test_a_mesh_with_inverted_winding_is_the_same_solid(tmp_path):
     sa, sb = implicit_solid(spec_for_file(a, "z")), implicit_solid(spec_for_file(b, "z"))
     probe = [[4.0, 5.0, 6.0], [15.0, 5.0, 14.0], [15.0, 5.0, 6.0], [-1.0, 5.0, 5.0]]
     assert (sa.H(probe) < 0).tolist() == (sb.H(probe) < 0).tolist() == [True, True, False, False]
+
+
+def test_numeric_options_are_named_in_their_errors(tmp_path, part, capsys):
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "o"), "--max-steps", "-3"], "--max-steps", "greater than or equal to 0")
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "o"), "--cage-elements", "10"], "--cage-elements")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("layers: {t_max: -1}\n")
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "o"), "--config", str(cfg)], "cfg.yaml", "layers.t_max")
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,64 @@
+"""The ring with the default command, mesh in to G-code out, in fresh stores (a new fTetWild cage each time).
+
+    .venv/bin/python benchmarks/bench_ring_default.py [RUNS]
+
+For each run: wall time of `neuralslicer slice ring.tet --up y` (Prefect start-up included), the
+optimisation steps, nozzle collisions of the first print, whether a retry or the planar blend was
+needed, the overhang area fraction against planar layers, and each step's wall time. Writes
+benchmarks/results/bench_ring_default.json and prints a table. Run it on a quiet machine: it is the
+figure behind the README's ring row.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+RING = ROOT.parents[1] / "shared" / "data" / "ring.tet"
+RESULTS = ROOT / "results" / "bench_ring_default.json"
+
+
+def one_run(tmp: Path) -> dict:
+    """One default ring slice in a fresh store: its figures."""
+    env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect")}
+    out = tmp / "ring"
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "cli", "slice", str(RING), "--up", "y", "--out", str(out)],
+                   check=True, env=env, capture_output=True, cwd=ROOT.parent)
+    wall = time.perf_counter() - start
+    m = json.loads((out / "metrics.json").read_text())
+    stages = sorted({int(k.split(".")[1]) for k in m if k.startswith("collision_resolution.")})
+    return {
+        "wall_s": wall, "steps": m["field.steps"], "layers": m["n_layers"], "waypoints": m["n_waypoints"],
+        "first_print_collisions": m["collision_resolution.0.collisions"] if stages else m["collisions"],
+        "printed_collisions": m["collisions"], "fields_printed": max(1, len(stages)),
+        "blend_planar": m["field.blend_planar"], "overhang": m["sf.overhang_area_fraction"],
+        "overhang_planar": m["sf.overhang_area_fraction_planar"],
+        "steps_s": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("wall_s.")},
+    }
+
+
+def main(runs: int = 3) -> None:
+    """Run the ring `runs` times and write the JSON."""
+    rows = []
+    for i in range(runs):
+        with tempfile.TemporaryDirectory() as tmp:
+            rows.append(one_run(Path(tmp)))
+        r = rows[-1]
+        print(f"run {i + 1}: {r['wall_s']:.0f} s, {r['steps']} steps, first print {r['first_print_collisions']} "
+              f"collisions, {r['fields_printed']} field(s) printed, blend {r['blend_planar']:g}, overhang "
+              f"{100 * r['overhang']:.3f} % (planar {100 * r['overhang_planar']:.2f} %), field "
+              f"{r['steps_s'].get('field', 0):.0f} s, toolpaths {r['steps_s'].get('toolpaths', 0):.0f} s")
+    RESULTS.parent.mkdir(exist_ok=True)
+    RESULTS.write_text(json.dumps({"runs": rows, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                                                             "platform": platform.platform()}}, indent=2))
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 3)
