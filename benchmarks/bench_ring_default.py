@@ -29,9 +29,11 @@ def one_run(tmp: Path) -> dict:
     env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect")}
     out = tmp / "ring"
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "cli", "slice", str(RING), "--up", "y", "--out", str(out)],
-                   check=True, env=env, capture_output=True, cwd=ROOT.parent)
+    done = subprocess.run([sys.executable, "-m", "cli", "slice", str(RING), "--up", "y", "--out", str(out)],
+                          env=env, capture_output=True, text=True, cwd=ROOT.parent)
     wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise SystemExit(f"the ring slice failed ({done.returncode}): {done.stderr[-2000:]}")
     m = json.loads((out / "metrics.json").read_text())
     stages = sorted({int(k.split(".")[1]) for k in m if k.startswith("collision_resolution.")})
     return {
