@@ -2,8 +2,11 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
+import socket
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
@@ -151,41 +154,84 @@ class ArtifactStore:
         return True
 
     @contextlib.contextmanager
-    def lock(self, path: str, timeout_s: float = 600.0) -> Iterator[None]:
-        """An exclusive lock on one artifact path across processes (O_EXCL lock file; no-op off local disk)."""
+    def lock(self, path: str, timeout_s: float | None = None) -> Iterator[None]:
+        """An exclusive lock on one artifact path across processes and hosts (O_EXCL lock file naming
+        host and PID, its time renewed every LOCK_HEARTBEAT_S while held; no-op off local disk).
+
+        A lock is taken over only when it is abandoned: its holder on this host is gone, or its
+        heartbeat stopped for LOCK_STALE_S (a holder on another host, or a frozen one). A long step
+        keeps its lock however long it runs. ``timeout_s``: give up waiting with an error.
+        """
         if not self.is_local:
             yield
             return
         lock_dir = Path(self.root, STAGING, "locks")
         lock_dir.mkdir(parents=True, exist_ok=True)
         lock_file = lock_dir / (path.replace("/", "__") + ".lock")
-        deadline = time.monotonic() + timeout_s
+        start = time.monotonic()
         while True:
             try:
                 fd = os.open(lock_file, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-                os.write(fd, str(os.getpid()).encode())
+                os.write(fd, json.dumps({"host": socket.gethostname(), "pid": os.getpid()}).encode())
                 os.close(fd)
                 break
             except FileExistsError:
-                if _stale(lock_file) or time.monotonic() > deadline:
+                if _stale(lock_file):
                     with contextlib.suppress(FileNotFoundError):
                         lock_file.unlink()
                     continue
-                time.sleep(0.05)
+                if timeout_s is not None and time.monotonic() - start > timeout_s:
+                    raise TimeoutError(f"{lock_file}: held by {_holder(lock_file)} for more than {timeout_s:g} s")
+                time.sleep(0.1)
+        stop = threading.Event()
+        beat = threading.Thread(target=_heartbeat, args=(lock_file, stop), daemon=True)
+        beat.start()
         try:
             yield
         finally:
+            stop.set()
+            beat.join()
             with contextlib.suppress(FileNotFoundError):
                 lock_file.unlink()
 
 
-def _stale(lock_file: Path) -> bool:
-    """True when the process that holds a lock file no longer exists."""
+#: a held lock's file time is renewed this often (s) ...
+LOCK_HEARTBEAT_S = 10.0
+#: ... and a lock whose time is older than this (s) is abandoned
+LOCK_STALE_S = 120.0
+
+
+def _heartbeat(lock_file: Path, stop: threading.Event) -> None:
+    """Renew the lock file's time until stop is set."""
+    while not stop.wait(LOCK_HEARTBEAT_S):
+        with contextlib.suppress(FileNotFoundError):
+            os.utime(lock_file)
+
+
+def _holder(lock_file: Path) -> dict:
+    """Host and PID written in a lock file ({} when unreadable; a bare PID from older versions)."""
     try:
-        pid = int(lock_file.read_text() or "0")
-    except (FileNotFoundError, ValueError):
+        text = lock_file.read_text()
+    except FileNotFoundError:
+        return {}
+    try:
+        data = json.loads(text or "{}")
+    except ValueError:
+        return {}
+    return data if isinstance(data, dict) else {"host": socket.gethostname(), "pid": int(data)}
+
+
+def _stale(lock_file: Path) -> bool:
+    """True when a lock is abandoned: its holder on this host no longer exists, or its heartbeat stopped."""
+    try:
+        age = time.time() - lock_file.stat().st_mtime
+    except FileNotFoundError:
         return False
-    if pid <= 0:
+    if age > LOCK_STALE_S:
+        return True
+    holder = _holder(lock_file)
+    pid = int(holder.get("pid", 0) or 0)
+    if holder.get("host") != socket.gethostname() or pid <= 0:
         return False
     try:
         os.kill(pid, 0)

@@ -64,8 +64,10 @@ class PipelineStep:
         return ArtifactStore(ref.store).exists(ref.path) and (self.valid is None or self.valid(ref, parameters))
 
     def cache_key(self, context: TaskRunContext, parameters: dict[str, Any]) -> str:
-        """Prefect cache key: the step and its output digest."""
-        return f"{self.step}-{self.output(parameters).digest}"
+        """Prefect cache key: the step, the store it writes to and its output digest (stores that share a
+        results folder, as remote ones do, never see each other's records)."""
+        out = self.output(parameters)
+        return f"{self.step}-{digest('store', out.store, length=8)}-{out.digest}"
 
 
 def run_step(task_: Any, **parameters: Any) -> State:

@@ -1,4 +1,6 @@
 """The artifact store: atomic groups, completion flags, checkpoints, cache keys."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import zarr
@@ -69,3 +71,60 @@ def test_digest_uses_artifact_digests_and_model_fields():
     assert digest("cage", a, CageConfig()) == digest("cage", b, CageConfig())
     assert digest("cage", a, CageConfig()) != digest("cage", a, CageConfig(n_elements=5000))
     assert digest("cage", a) != digest("cage", ArtifactRef("/s1", "m/x/1", "d2"))
+
+
+def test_two_stores_never_share_a_cache_record():
+    # remote (fsspec) stores keep their Prefect records in one shared folder: the store is in the key
+    from tasks.steps import solid_task
+
+    model = ArtifactRef("memory://a/store.zarr", "part/model/abc", "abc")
+    key = lambda store: solid_task.pipeline.cache_key(None, {"store": store, "model": model})  # noqa: E731
+    assert key("memory://a/store.zarr") == key("memory://a/store.zarr")
+    assert key("memory://a/store.zarr") != key("memory://b/store.zarr")
+    # the artifact itself is content-addressed: the same digest in either store
+    out = lambda store: solid_task.pipeline.output({"store": store, "model": model})  # noqa: E731
+    assert out("memory://a/store.zarr").digest == out("memory://b/store.zarr").digest
+
+
+def _lock_file(store: ArtifactStore, path: str) -> Path:
+    """Where the store keeps the lock file of an artifact path."""
+    from storage.store import STAGING
+
+    f = Path(str(store.root), STAGING, "locks", path.replace("/", "__") + ".lock")
+    f.parent.mkdir(parents=True, exist_ok=True)
+    return f
+
+
+def test_locks_name_host_and_pid_and_are_taken_over_only_when_abandoned(tmp_path, monkeypatch):
+    import json
+    import os
+    import socket
+    import time
+
+    import storage.store as S
+
+    st = ArtifactStore(tmp_path / "s.zarr")
+    f = _lock_file(st, "m/cage/x")
+    # held by a live process on another host: waited for, not broken
+    f.write_text(json.dumps({"host": "elsewhere", "pid": os.getpid()}))
+    with pytest.raises(TimeoutError, match="elsewhere"):
+        with st.lock("m/cage/x", timeout_s=0.3):
+            pass
+    # its heartbeat stopped long ago: abandoned, taken over
+    old = time.time() - 2 * S.LOCK_STALE_S
+    os.utime(f, (old, old))
+    with st.lock("m/cage/x", timeout_s=5):
+        holder = json.loads(f.read_text())
+        assert holder == {"host": socket.gethostname(), "pid": os.getpid()}
+    assert not f.exists()
+    # a holder on this host that has exited: taken over at once
+    f.write_text(json.dumps({"host": socket.gethostname(), "pid": 2 ** 22 + 12345}))
+    with st.lock("m/cage/x", timeout_s=5):
+        pass
+    # while held, the heartbeat renews the file's time
+    monkeypatch.setattr(S, "LOCK_HEARTBEAT_S", 0.05)
+    with st.lock("m/cage/y", timeout_s=5):
+        g = _lock_file(st, "m/cage/y")
+        os.utime(g, (old, old))
+        time.sleep(0.3)
+        assert time.time() - g.stat().st_mtime < 5
