@@ -12,6 +12,7 @@ from cli.studies import add_compare_parser, add_study_parser
 from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
+from neuralslicer.neural.device import limit_threads
 from neuralslicer.preflight import MAX_LAYERS
 
 
@@ -42,6 +43,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
 def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse.Namespace) -> int:
     """Run the slicing flow and print its summary."""
     prefect_environment()
+    limit_threads()  # a run pinned to fewer cores (taskset, a cgroup quota) uses only those
     from flows.slice import ensure_store, slice_flow
 
     store = ensure_store(store)

@@ -8,6 +8,7 @@ from typing import Any
 from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
 from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
+from neuralslicer.neural.device import limit_threads
 
 
 def parse_counts(text: str) -> list[int]:
@@ -39,6 +40,7 @@ def cmd_study(args: argparse.Namespace) -> int:
 
     def job() -> int:
         prefect_environment()
+        limit_threads()
         from flows.studies import batch_study, cage_study, initial_guess_study
         from storage import ArtifactStore
 

@@ -159,3 +159,16 @@ def test_numeric_options_are_named_in_their_errors(tmp_path, part, capsys):
     cfg.write_text("layers: {t_max: -1}\n")
     refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "o"), "--config", str(cfg)], "cfg.yaml", "layers.t_max")
     assert not (tmp_path / "o").exists()
+
+
+def test_threads_follow_the_cpus_available(tmp_path, monkeypatch):
+    from neuralslicer.neural import device
+
+    monkeypatch.setattr(device.os, "sched_getaffinity", lambda pid: {0})
+    assert device.available_cpus(tmp_path / "none") == 1        # pinned to one core
+    monkeypatch.setattr(device.os, "sched_getaffinity", lambda pid: set(range(8)))
+    quota = tmp_path / "cpu.max"
+    quota.write_text("150000 100000\n")                           # a cgroup quota of 1.5 CPUs
+    assert device.available_cpus(quota) == 2
+    quota.write_text("max 100000\n")
+    assert device.available_cpus(quota) == 8

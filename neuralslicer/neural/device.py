@@ -1,7 +1,13 @@
 """Device selection for the neural optimisation."""
 from __future__ import annotations
 
+import math
+import os
+from pathlib import Path
+
 import torch
+
+CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
 
 
 def resolve_device(device: str = "auto") -> torch.device:
@@ -14,3 +20,23 @@ def resolve_device(device: str = "auto") -> torch.device:
 def resolve_dtype(name: str) -> torch.dtype:
     """'float32' | 'float64' -> torch dtype."""
     return {"float32": torch.float32, "float64": torch.float64}[name]
+
+
+def available_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
+    """CPUs this process may use: its affinity mask, capped by a cgroup v2 CPU quota when one is set
+    (a container or a batch-scheduler slot), not the machine's count."""
+    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+        if quota != "max":
+            n = min(n, max(1, math.ceil(int(quota) / int(period))))
+    except (OSError, ValueError):
+        pass
+    return max(1, n)
+
+
+def limit_threads() -> int:
+    """Torch's intra-op threads set to the CPUs available (never more than torch chose); the count."""
+    n = min(torch.get_num_threads(), available_cpus())
+    torch.set_num_threads(n)
+    return n
