@@ -10,6 +10,7 @@ import os
 import shutil
 import uuid
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,16 @@ class RunResults:
     verify: tuple[dict[str, np.ndarray], dict[str, float]] | None = None
     attempts: list[Attempt] = field(default_factory=list)
 
+    @cached_property
+    def lpd_b(self) -> np.ndarray:
+        """The field's LPD at the surface samples B (n, 3), computed once for metrics and figures."""
+        return self.field.sample(self.samples.points)[1]
+
+    @cached_property
+    def lpd_t(self) -> np.ndarray | None:
+        """The field's LPD at the stress samples T, or None without them."""
+        return None if self.stress is None else self.field.sample(self.stress.points)[1]
+
 
 def write_ply(path: Path, mesh: trimesh.Trimesh, normals: np.ndarray | None = None) -> None:
     """Binary PLY of a triangle mesh (with per-vertex normals when given), atomically."""
@@ -132,8 +143,7 @@ def collision_table(rows: list[dict], alpha_deg: float) -> str:
 
 def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, Any]:
     """metrics.json: the model, cage, field, layers, support-free and strength figures, print metrics."""
-    B, fa = run.samples, run.field.info
-    _, lpd, _ = run.field.sample(B.points)
+    B, fa, lpd = run.samples, run.field.info, run.lpd_b
     planar = np.tile(PLANAR, (len(B.points), 1))
     metrics: dict[str, Any] = {
         "model": run.model, "model_genus": run.surface_attrs["genus"],
@@ -150,8 +160,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics.update({f"loss.{k}": v for k, v in (fa.get("final") or {}).items()})
     metrics.update({f"wall_s.{k}": v for k, v in run.wall_s.items()})
     if run.stress is not None:
-        T = run.stress
-        _, lpd_t, _ = run.field.sample(T.points)
+        T, lpd_t = run.stress, run.lpd_t
         metrics["sr.beta_deg"] = beta_deg
         metrics["sr.satisfied_fraction"] = strength_satisfaction(T.tau_max, T.volumes, lpd_t, beta_deg)
         metrics["sr.satisfied_fraction_planar"] = strength_satisfaction(
@@ -165,8 +174,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
 
 def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
     """The report's pictures under ``figs``: {caption: path relative to the output folder}."""
-    B, keep = run.samples, ~run.samples.on_platform
-    _, lpd, _ = run.field.sample(B.points)
+    B, keep, lpd = run.samples, ~run.samples.on_platform, run.lpd_b
     planar = np.tile(PLANAR, (len(B.points), 1))
     figures = {}
     plot_layers(figs / "layers.png", run.layers.meshes)
@@ -178,8 +186,7 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
     )
     figures["Support-free angle histogram"] = "figures/sf_histogram.png"
     if run.stress is not None:
-        T = run.stress
-        _, lpd_t, _ = run.field.sample(T.points)
+        T, lpd_t = run.stress, run.lpd_t
         plot_angle_histogram(
             figs / "sr_histogram.png",
             {"planar": strength_angles(T.tau_max, np.tile(PLANAR, (len(T.points), 1))),
