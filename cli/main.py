@@ -13,14 +13,13 @@ from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.device import limit_threads
-from neuralslicer.preflight import MAX_LAYERS
+from neuralslicer.preflight import MAX_LAYERS, preflight
 
 
 def cmd_slice(args: argparse.Namespace) -> int:
     """Slice a model (mesh, .tet or spec YAML) into curved layers and write the output contract."""
     from neuralslicer.model.solid import implicit_solid
     from neuralslicer.model.spec import spec_for_file
-    from neuralslicer.preflight import preflight
 
     model = Path(args.model)
     if not model.exists():
@@ -35,7 +34,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
     out_dir = Path(args.out).resolve()
     store = str(args.store or out_dir / "store.zarr")
     solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
-    needs_fea = config.verify or ("sr" in config.objectives if config.objectives is not None else spec.fea is not None)
+    needs_fea = config.verify or "sr" in config.objectives_for(spec)
     preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea)
     return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args))
 

@@ -87,11 +87,6 @@ def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRe
     return blended, layers, printing
 
 
-def default_objectives(spec: ModelSpec) -> list[str]:
-    """sf, po, gc with the ca constraint, plus sr when the spec has an FEA load case."""
-    return ["sf", "po", "gc", "ca"] + (["sr"] if getattr(spec, "fea", None) is not None else [])
-
-
 @dataclass
 class SliceRun:
     """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest."""
@@ -112,7 +107,7 @@ def slice_pipeline(
 ) -> SliceRun:
     """Run every step of the slicing pipeline (cached tasks) and write the outputs and provenance to out_dir."""
     log = RunLog()
-    objectives = config.objectives if config.objectives is not None else default_objectives(spec)
+    objectives = config.objectives_for(spec)
     name = model_name(spec)
     model = log.run(model_task, store=store, name=name, spec=spec, content=spec_digest(spec))
     solid = log.run(solid_task, store=store, model=model)

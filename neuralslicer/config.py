@@ -10,6 +10,7 @@ from pydantic import BaseModel, Field, ValidationError
 from neuralslicer.cage import CageConfig
 from neuralslicer.errors import InputError
 from neuralslicer.layers import LayerConfig
+from neuralslicer.model.spec import ModelSpec
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 
@@ -48,6 +49,13 @@ class SliceConfig(BaseModel):
     collision_blend_steps: int = Field(
         5, ge=1, le=8, description="bisection steps of the planar blend (t to within 2^-steps)")
     verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
+
+    def objectives_for(self, spec: ModelSpec) -> list[str]:
+        """The objectives asked for, or the default: sf, po, gc with the ca constraint, plus sr when the
+        spec has an FEA load case."""
+        if self.objectives is not None:
+            return list(self.objectives)
+        return ["sf", "po", "gc", "ca"] + (["sr"] if spec.fea is not None else [])
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> SliceConfig:
