@@ -8,7 +8,7 @@ import trimesh
 from neuralslicer.errors import InputError
 from neuralslicer.toolpath import (ToolpathConfig, Toolpaths, read_waypoints_csv, toolpath_config_from_dict,
                                    toolpaths, write_toolpaths_vtp, write_waypoints_csv)
-from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack, tilted_stack
+from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack, square_layer, tilted_stack
 
 
 @pytest.fixture(scope="module")
@@ -180,3 +180,59 @@ def test_irregular_curved_layers_from_marching_cubes():
     lpd /= np.linalg.norm(lpd, axis=1, keepdims=True)
     assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", lpd, tp.axis[on]), -1, 1))).max() < 1.0
     assert np.linalg.norm(tp.xyz[tp.path >= 0, :2], axis=1).max() <= 9.0
+
+
+def _edge_use(faces: np.ndarray) -> np.ndarray:
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0, return_counts=True)[1]
+
+
+def test_band_refinement_is_conforming_and_only_near_the_boundary():
+    from neuralslicer.toolpath.geometry import Patch, boundary_vertices, refine_patch
+
+    layer = disc_layer(1.0, radius=20.0, n_rings=4, n_sectors=24)          # coarse: edges ~5 mm
+    patch = Patch(np.asarray(layer.vertices), np.asarray(layer.faces), layer.vertex_attributes["lpd"])
+    band, h = 2.0, 0.5
+    fine = refine_patch(patch, h, band=band)
+    full = refine_patch(patch, h)
+    for p in (fine, full):
+        assert _edge_use(p.faces).max() == 2                               # no T-junction: no edge used 3 times
+        assert abs(p.area - patch.area) < 1e-9 * patch.area
+        tri = p.vertices[p.faces]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        assert (normal[:, 2] > 0).all()                                    # orientation kept
+        bverts, _ = boundary_vertices(p.faces)                             # boundary = the same 24-gon
+        r = np.linalg.norm(p.vertices[bverts, :2], axis=1)
+        assert r.min() > 20.0 * np.cos(np.pi / 24) - 1e-9 and r.max() < 20.0 + 1e-9
+    tri = fine.vertices[fine.faces]
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    outer = np.linalg.norm(tri[..., :2], axis=2).max(axis=1) > 20.0 - band   # faces reaching into the band
+    assert longest[outer].max() <= h + 1e-12
+    assert len(fine.vertices) < 0.3 * len(full.vertices)
+
+
+def test_clipped_boundary_distance_is_exact_below_the_clip():
+    from neuralslicer.toolpath.geometry import boundary_vertices, euclidean_boundary_distance
+
+    layer = square_layer(0.0, size=10.0, n=41)
+    v = np.asarray(layer.vertices)
+    _, bedges = boundary_vertices(np.asarray(layer.faces))
+    exact = np.min(5.0 - np.abs(v[:, :2]), axis=1)
+    assert np.allclose(euclidean_boundary_distance(v, bedges), exact, atol=1e-9)
+    assert np.allclose(euclidean_boundary_distance(v, bedges, upper=1.3), np.minimum(exact, 1.3), atol=1e-9)
+
+
+def test_band_limited_paths_match_fully_refined_ones(monkeypatch):
+    import neuralslicer.toolpath.generate as generate
+
+    layers = [disc_layer(0.5 * (i + 1), radius=15.0, n_rings=3, n_sectors=40) for i in range(2)]
+    band_tp = toolpaths(layers, platform_z=0.0)
+    monkeypatch.setattr(generate, "distance_band", lambda cfg: np.inf)
+    full_tp = toolpaths(layers, platform_z=0.0)
+    shells = [np.sort(np.linalg.norm(tp.xyz[tp.path >= 0, :2], axis=1))[::-1] for tp in (band_tp, full_tp)]
+    for r in shells:
+        assert r[0] <= 15.0 - 0.25 + 1e-6                                  # half a line inside the 40-gon
+    n = min(len(shells[0]), len(shells[1])) // 4                           # the outer shells agree
+    assert np.allclose(shells[0][:n], shells[1][:n], atol=0.05)
+    assert abs(len(band_tp) / len(full_tp) - 1.0) < 0.02
+    assert abs(band_tp.deposited_volume() / full_tp.deposited_volume() - 1.0) < 0.01

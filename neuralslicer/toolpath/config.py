@@ -31,7 +31,8 @@ class ToolpathConfig(BaseModel):
     spacing: float = Field(0.5, gt=0)
     #: original polyline vertices turning by more than this angle are kept as waypoints.
     corner_angle_deg: float = Field(30.0, gt=0, le=180)
-    #: layer triangles are split uniformly until the mean edge is at most this (0: line_width).
+    #: layer triangles within the boundary-distance band of a patch (all of it for contour infill) are
+    #: split until every edge is at most this (0: line_width).
     max_edge: float = Field(0.0, ge=0)
     #: lift along the tool axis before/after a travel (retract height).
     travel_lift: float = Field(1.0, ge=0)

@@ -55,10 +55,22 @@ def _polylines_from_points(xyz: FloatArray, axis: FloatArray, level: np.ndarray,
     return out
 
 
+def distance_band(cfg: ToolpathConfig) -> float:
+    """How far from a patch's boundary the paths need the boundary distance (mm; inf: everywhere).
+
+    Shells are its isolines up to ``(n_shells - 1/2) w`` and zig-zag infill is clipped at
+    ``(n_shells + 1/2) w``; one more line width keeps the clip inside the resolved band. Contour
+    infill needs it across the whole patch.
+    """
+    if cfg.infill == "contour":
+        return np.inf
+    return (cfg.n_shells + 1.5) * cfg.line_width
+
+
 def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathConfig) -> list[_Path]:
     """Shells and infill of one patch (unordered)."""
     w = cfg.line_width
-    d = boundary_distance(patch)
+    d = boundary_distance(patch, upper=distance_band(cfg))
     finite = np.isfinite(d)
     d_max = float(d[finite].max()) if finite.any() else 0.0
     paths: list[_Path] = []
@@ -267,7 +279,7 @@ def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: Fl
         if patch.area < cfg.min_patch_area:
             skipped += 1
             continue
-        patch = refine_patch(patch, cfg.max_edge or cfg.line_width)
+        patch = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
         tri_sets.append(TriangleSet(patch.vertices, patch.faces))
         all_paths += _patch_paths(patch, len(tri_sets) - 1, li, cfg)
     if not all_paths:

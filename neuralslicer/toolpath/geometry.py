@@ -89,16 +89,73 @@ def split_patches(vertices: FloatArray, faces: IndexArray, lpd: FloatArray) -> l
     return patches
 
 
-def refine_patch(patch: Patch, max_edge: float, max_levels: int = 4) -> Patch:
-    """Uniform 1:4 midpoint subdivision until the mean edge length is at most ``max_edge``."""
+def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.ndarray, max_edge: float
+                 ) -> tuple[FloatArray, IndexArray, FloatArray]:
+    """Split at their midpoints the edges longer than ``max_edge`` of the faces in ``split_face``.
+
+    Conforming: a split edge is split in both of its faces, and each face is cut by the template of
+    its split-edge count (one edge: 2 triangles, two: 3, three: 4), keeping its orientation.
+    """
+    m = len(f)
+    e = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2)    # (m, 3, 2)
+    ukey, eid = np.unique(e[..., 0] * len(v) + e[..., 1], return_inverse=True)
+    eid = eid.reshape(m, 3)
+    ua, ub = ukey // len(v), ukey % len(v)
+    long_edge = np.linalg.norm(v[ua] - v[ub], axis=1) > max_edge
+    split = np.zeros(len(ukey), bool)
+    split[eid[split_face].ravel()] = True
+    split &= long_edge
+    if not split.any():
+        return v, f, lpd
+    mid = np.full(len(ukey), -1, np.int64)
+    mid[split] = len(v) + np.arange(int(split.sum()))
+    v = np.concatenate([v, 0.5 * (v[ua[split]] + v[ub[split]])])
+    lpd = np.concatenate([lpd, _normalise(lpd[ua[split]] + lpd[ub[split]])])
+    mf = mid[eid]                                                 # (m, 3): midpoint of edge k = (k, k+1)
+    count = (mf >= 0).sum(axis=1)
+    # rotate each face so that its template is canonical: one split edge at slot 0, or the one
+    # unsplit edge at slot 2
+    r = np.zeros(m, np.int64)
+    one, two = count == 1, count == 2
+    r[one] = np.argmax(mf[one] >= 0, axis=1)
+    r[two] = (np.argmax(mf[two] < 0, axis=1) + 1) % 3
+    roll = (np.arange(3)[None, :] + r[:, None]) % 3
+    F = np.take_along_axis(f, roll, axis=1)
+    M = np.take_along_axis(mf, roll, axis=1)
+    v0, v1, v2, m0, m1, m2 = F[:, 0], F[:, 1], F[:, 2], M[:, 0], M[:, 1], M[:, 2]
+    out = [f[count == 0]]
+    out += [np.stack(t, axis=1)[one] for t in ((v0, m0, v2), (m0, v1, v2))]
+    # two split edges: the corner triangle at v1 and the quad v0-m0-m1-v2 cut along its shorter diagonal
+    short = np.linalg.norm(v[v0] - v[m1], axis=1) <= np.linalg.norm(v[m0] - v[v2], axis=1)
+    out.append(np.stack((m0, v1, m1), axis=1)[two])
+    for sel, tris in ((two & short, ((v0, m0, m1), (v0, m1, v2))), (two & ~short, ((v0, m0, v2), (m0, m1, v2)))):
+        out += [np.stack(t, axis=1)[sel] for t in tris]
+    three = count == 3
+    out += [np.stack(t, axis=1)[three] for t in ((v0, m0, m2), (m0, v1, m1), (m2, m1, v2), (m0, m1, m2))]
+    return v, np.concatenate(out).astype(np.int64), lpd
+
+
+def refine_patch(patch: Patch, max_edge: float, band: float = np.inf, max_rounds: int = 12) -> Patch:
+    """Split edges longer than ``max_edge`` in the faces within ``band`` of the patch boundary.
+
+    Distances beyond the band are never needed to full resolution (zig-zag infill lines are
+    isolines of a linear function, exact on the layer's own triangles), so the work grows with the
+    boundary length times the band, not with the patch area. ``band = inf`` refines everything.
+    """
     v, f, lpd = patch.vertices, patch.faces, patch.lpd
-    for _ in range(max_levels):
-        edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        mean_edge = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean()
-        if mean_edge <= max_edge:
+    bverts, bedges = boundary_vertices(f)
+    for _ in range(max_rounds):
+        tri = v[f]
+        longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+        todo = longest > max_edge
+        if np.isfinite(band) and todo.any():
+            if len(bedges) == 0:
+                break
+            d = euclidean_boundary_distance(v, bedges, upper=band + float(longest.max()))
+            todo &= d[f].min(axis=1) < band + longest
+        if not todo.any():
             break
-        v, f, attr = trimesh.remesh.subdivide(v, f, vertex_attributes={"lpd": lpd})
-        lpd = _normalise(attr["lpd"])
+        v, f, lpd = _split_edges(v, f, lpd, todo, max_edge)
     return Patch(np.asarray(v, np.float64), np.asarray(f, np.int64), lpd)
 
 
@@ -120,11 +177,14 @@ def _segment_distance(points: FloatArray, a: FloatArray, b: FloatArray) -> Float
     return np.linalg.norm(points[:, None, :] - q, axis=2)
 
 
-def euclidean_boundary_distance(vertices: FloatArray, bedges: IndexArray, k: int = 6) -> FloatArray:
-    """Straight-line distance from each vertex to the nearest boundary edge (n,).
+def euclidean_boundary_distance(vertices: FloatArray, bedges: IndexArray, k: int = 6,
+                                upper: float = np.inf) -> FloatArray:
+    """Straight-line distance from each vertex to the nearest boundary edge (n,), at most ``upper``.
 
     Exact geodesic distance to the boundary on planar patches; a chord (slight under-estimate,
-    relative error ~ d^2 / (24 R^2)) on patches of curvature radius R.
+    relative error ~ d^2 / (24 R^2)) on patches of curvature radius R. Vertices further than
+    ``upper`` from every boundary sample get ``upper`` (the search stops there, which is what
+    keeps it cheap on large patches).
     """
     va, vb = vertices[bedges[:, 0]], vertices[bedges[:, 1]]
     lengths = np.linalg.norm(vb - va, axis=1)
@@ -134,9 +194,18 @@ def euclidean_boundary_distance(vertices: FloatArray, bedges: IndexArray, k: int
     t = (np.arange(len(seg)) - np.repeat(np.cumsum(n_s) - n_s, n_s) + 0.5) / n_s[seg]
     samples = va[seg] + t[:, None] * (vb - va)[seg]
     kk = int(min(k, len(samples)))
-    _, idx = cKDTree(samples).query(vertices, k=kk)
-    cand = seg[np.asarray(idx).reshape(len(vertices), kk)]
-    return _segment_distance(vertices, va[cand], vb[cand]).min(axis=1)
+    # a sample lies within half a sample spacing of its edge: search that much further
+    reach = upper + step if np.isfinite(upper) else np.inf
+    _, idx = cKDTree(samples).query(vertices, k=kk, distance_upper_bound=reach)
+    idx = np.asarray(idx).reshape(len(vertices), kk)
+    found = idx < len(samples)
+    out = np.full(len(vertices), float(upper))
+    near = found[:, 0]
+    if near.any():
+        cand = seg[np.where(found[near], idx[near], idx[near][:, :1])]
+        dist = _segment_distance(vertices[near], va[cand], vb[cand]).min(axis=1)
+        out[near] = np.minimum(dist, upper)
+    return out
 
 
 def is_planar(vertices: FloatArray, rel_tol: float = 1e-9) -> bool:
@@ -149,7 +218,7 @@ def is_planar(vertices: FloatArray, rel_tol: float = 1e-9) -> bool:
     return bool(sv[-1] / np.sqrt(len(vertices)) <= rel_tol * size)
 
 
-def boundary_distance(patch: Patch) -> FloatArray:
+def boundary_distance(patch: Patch, upper: float = np.inf) -> FloatArray:
     """Distance of every vertex from the patch boundary along the patch (n,).
 
     The geodesic distance by the heat method (potpourri3d, intrinsic-Delaunay "robust" mode;
@@ -157,13 +226,14 @@ def boundary_distance(patch: Patch) -> FloatArray:
     to ~h, so wherever the straight-line distance to the boundary edges is at least half of it
     (no fold of the patch in between) the straight-line distance is used: it is exact on planar
     patches and a chord on curved ones. Planar patches skip the heat method (the straight-line
-    distance is the exact geodesic distance there). All +inf when the patch has no boundary.
+    distance is the exact geodesic distance there). All +inf when the patch has no boundary;
+    distances are clipped at ``upper``.
     """
     bverts, bedges = boundary_vertices(patch.faces)
     n = len(patch.vertices)
     if len(bverts) == 0:
         return np.full(n, np.inf)
-    euclid = euclidean_boundary_distance(patch.vertices, bedges)
+    euclid = euclidean_boundary_distance(patch.vertices, bedges, upper=upper)
     if is_planar(patch.vertices):
         euclid[bverts] = 0.0
         return euclid
@@ -182,7 +252,7 @@ def boundary_distance(patch: Patch) -> FloatArray:
         g = sparse.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
         d = np.asarray(dijkstra(g, directed=False, indices=bverts, min_only=True), np.float64)
     d = np.maximum(d, 0.0)
-    d = np.where(euclid >= 0.5 * d, euclid, d)
+    d = np.minimum(np.where(euclid >= 0.5 * d, euclid, d), upper)
     d[bverts] = 0.0
     return d
 
