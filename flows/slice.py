@@ -140,7 +140,7 @@ def slice_pipeline(
         neural = smoother(neural, config.collision_smoothness_factor)
         objectives = sorted(set(objectives) | {"ca"})
         get_run_logger().warning("%d nozzle collisions: re-optimising with harmonic weights x%g", collisions,
-                                 config.collision_smoothness_factor)
+                                 config.collision_smoothness_factor ** (attempt + 1))
     if collisions and objectives and config.collision_fallback == "blend":
         field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine,
                                                                  attempts)

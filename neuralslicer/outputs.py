@@ -169,6 +169,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
         metrics.update({f"fea.{k}": v for k, v in run.verify[1].items() if k.startswith("max_strain")})
     metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
     metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
+    metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
     return metrics
 
 
@@ -227,6 +228,12 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
         for i, row in enumerate(rows):
             metrics.update({f"collision_resolution.{i}.{k}": v for k, v in row.items()})
         sections["Collision resolution"] = collision_table(rows, alpha_deg)
+    if metrics.get("tilt.n_waypoints_tilted"):
+        sections["Tool axis tilted at stray collisions"] = (
+            f"{metrics['tilt.n_collisions_before']:,} waypoints of the printed field collided; tilting the tool axis away "
+            f"from the LPD by at most {metrics['tilt.max_tilt_deg']:g}° (ramped along the path, "
+            f"{metrics['tilt.n_waypoints_tilted']:,} waypoints turned) cleared {metrics['tilt.n_collisions_cleared']:,} "
+            f"of them; {metrics['collisions']:,} remain. The layers are the field's own.")
     write_json_atomic(d / "metrics.json", metrics)
     write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {run.model}", metrics, figures, sections))
     return json.loads(json.dumps(metrics, default=float))

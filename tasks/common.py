@@ -24,8 +24,8 @@ STEP_VERSIONS = {
     "stress_samples": "1",
     "field": "2",
     "field_blend": "1",
-    "layers": "4",
-    "toolpaths": "3",
+    "layers": "5",
+    "toolpaths": "4",
     "verify": "1",
     "export": "3",
 }

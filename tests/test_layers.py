@@ -89,6 +89,37 @@ def test_choose_isovalues_uniform_and_graded_fields():
     assert rep["fraction_outside_range"] == pytest.approx(0.25, abs=0.02)
 
 
+def test_one_flat_point_does_not_multiply_the_layers():
+    rng = np.random.default_rng(1)
+    z = rng.uniform(0, 50, 20000)
+    gn = np.ones_like(z)
+    cfg = LayerConfig()                                         # 0.8 mm layers in [0.4, 1.0]
+    isos, rep = choose_isovalues(z, gn, cfg)
+    gn[123] = 1e-4                                              # one point where the field is nearly flat
+    again, rep_low = choose_isovalues(z, gn, cfg)
+    assert len(again) == len(isos) == pytest.approx(50 / 0.8, abs=1)
+    assert rep_low["low_gradient_fraction"] == pytest.approx(1 / z.size)
+    assert rep_low["low_gradient_thickness_max"] > 1000       # reported, not hidden
+    assert rep_low["thickness_max"] <= 1.0 + 1e-9
+
+
+def test_first_slab_counts_and_the_top_gap_is_reported():
+    z = np.linspace(0, 10, 20001)
+    cfg = LayerConfig(layer_height=0.5, t_min=0.4, t_max=1.0)
+    isos, rep = choose_isovalues(z, np.ones_like(z), cfg)
+    assert isos[0] == pytest.approx(0.4)                        # half a layer (0.25) is below t_min: 0.4
+    assert rep["thickness_min"] == pytest.approx(0.4) and rep["fraction_outside_range"] == 0.0
+    assert rep["top_gap_max"] == pytest.approx(10 - isos[-1], abs=1e-3)
+
+
+def test_too_many_layers_is_a_clear_error():
+    from neuralslicer.errors import InputError
+
+    z = np.linspace(0, 10_000, 20001)                           # 10 m read as mm: 12,500 layers
+    with pytest.raises(InputError, match="more than 5,000 layers"):
+        choose_isovalues(z, np.ones_like(z), LayerConfig())
+
+
 def test_edge_crossings_converge_inside_for_a_nonlinear_H():
     from neuralslicer.layers import edge_crossings
 

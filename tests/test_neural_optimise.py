@@ -257,6 +257,25 @@ def test_a_run_stops_once_the_constraints_are_met(problem):
     assert _run(problem, _cfg(max_steps=res.steps + 20, target_loss=0.0)).steps == res.steps + 20
 
 
+def test_the_late_overhang_target_applies_from_late_after(problem):
+    """The constraint stop accepts target_overhang before late_after and target_overhang_late from it on."""
+    from neuralslicer.neural.problem import FieldProblem
+
+    V, T, (pts, nrm, area, knn, pf) = problem
+    samples = SurfaceSamples(pts, nrm, area, knn, pf)
+    planar = _run(problem, _cfg(max_steps=0)).satisfaction["planar_overhang_area_fraction"]
+    assert planar > 0
+
+    def met(step: int, late: float) -> bool:
+        cfg = _cfg(target_overhang=0.5 * planar, target_overhang_late=late, late_after=100)
+        fp = FieldProblem(V, T, samples, None, cfg, 0.0, None)
+        return fp.constraints_met(fp.new_fields(), step)            # identity networks: planar layers
+
+    assert not met(0, 2 * planar) and not met(99, 2 * planar)
+    assert met(100, 2 * planar) and met(5000, 2 * planar)
+    assert not met(100, 0.5 * planar) and not met(100, 0.0)
+
+
 class _Planted:
     """An object whose unpickling runs a command (what a planted checkpoint would carry)."""
 

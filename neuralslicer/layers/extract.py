@@ -9,6 +9,7 @@ import trimesh
 from pydantic import BaseModel, Field
 
 from neuralslicer.cage import interior_points
+from neuralslicer.errors import InputError
 from neuralslicer.layers.marching import marching_batch, tet_edges
 from neuralslicer.layers.trim import trim
 from neuralslicer.model.solid import Solid
@@ -25,6 +26,14 @@ class LayerConfig(BaseModel):
     trim_tolerance: float = Field(5e-4, gt=0, description="how far (mm) a layer triangle may leave the solid")
     trim_rounds: int = Field(12, ge=0, description="rounds of refinement of the triangles that leave the solid")
     thickness_samples: int = Field(20_000, ge=100, description="interior points used to measure layer thickness")
+    max_layers: int = Field(
+        5000, ge=1, description="more isovalues than this is an error that names the cause (a field gone flat, "
+        "or a unit mistake), not hours of layer extraction")
+    low_gradient_fraction: float = Field(
+        0.05, ge=0, lt=1,
+        description="interior points whose |grad G| is below this multiple of the median are low-gradient: "
+        "they do not shrink the layer spacing of the whole slab (one point at |grad G| = 1e-4 would multiply "
+        "the layer count); they are reported, and the toolpaths cap their bead thickness locally")
 
 
 @dataclass
@@ -63,34 +72,56 @@ class Layers:
         return cls(meshes, arrays["isovalues"], attrs.get("report", {}))
 
 
+def _step(gn_slab: np.ndarray, height: float, config: LayerConfig) -> float:
+    """Isovalue step for a slab: ``height`` at the slab's median |grad G|, kept in [t_min, t_max] where it can be."""
+    dg = height * float(np.median(gn_slab))
+    dg = max(dg, config.t_min * float(gn_slab.max()))
+    return max(min(dg, config.t_max * float(gn_slab.min())), 1e-12)
+
+
 def choose_isovalues(
     g_points: np.ndarray, grad_norm: np.ndarray, config: LayerConfig
 ) -> tuple[np.ndarray, dict]:
-    """Isovalues so that the local thickness dG/|grad G| at interior points stays in [t_min, t_max] as far as possible."""
+    """Isovalues so that the local thickness dG/|grad G| at interior points stays in [t_min, t_max] as far as possible.
+
+    Low-gradient points (|grad G| below ``low_gradient_fraction`` x the median) do not limit the step; the
+    first slab (from the lowest point to the first isovalue: the first layer's thickness) counts in the
+    statistics like any other, and the material above the last isovalue is reported as ``top_gap_max``.
+    """
     order = np.argsort(g_points)
     g, gn = g_points[order], grad_norm[order]
     lo, hi = float(g[0]), float(g[-1])
-    isos = [lo + 0.5 * config.layer_height * float(np.median(gn))]
+    low = gn < config.low_gradient_fraction * float(np.median(gn))
+    g_ok, gn_ok = (g[~low], gn[~low]) if (~low).any() else (g, gn)
+    reach = 2 * config.t_max * float(gn_ok.max())
+
+    def slab(c: float) -> np.ndarray:
+        i0, i1 = np.searchsorted(g_ok, [c, c + reach])
+        return gn_ok[i0:max(i1, i0 + 1)] if i0 < len(g_ok) else gn_ok[-1:]
+
+    isos = [lo + _step(slab(lo), 0.5 * config.layer_height, config)]
     while isos[-1] < hi:
-        c = isos[-1]
-        i0, i1 = np.searchsorted(g, [c, c + 2 * config.t_max * float(gn.max())])
-        slab = gn[i0:max(i1, i0 + 1)] if i0 < len(g) else gn[-1:]
-        dg = config.layer_height * float(np.median(slab))
-        dg = max(dg, config.t_min * float(slab.max()))
-        dg = min(dg, config.t_max * float(slab.min()))
-        isos.append(c + max(dg, 1e-9))
+        if len(isos) > config.max_layers:
+            raise InputError("layers", f"the field needs more than {config.max_layers:,} layers between G = {lo:.4g} "
+                             f"and {hi:.4g} (median |grad G| {float(np.median(gn)):.3g}, smallest {float(gn_ok.min()):.3g}); "
+                             "the field is nearly flat somewhere or the model's unit is wrong (raise layers.max_layers "
+                             "if it is meant)")
+        isos.append(isos[-1] + _step(slab(isos[-1]), config.layer_height, config))
     isos = np.asarray(isos[:-1] if len(isos) > 1 and isos[-1] >= hi else isos)
     # thickness of the slab each interior point lies in
     slab_id = np.searchsorted(isos, g)
     edges = np.concatenate([[lo], isos, [hi]])
-    dgs = edges[slab_id + 1] - edges[slab_id]
-    inner = (slab_id > 0) & (slab_id < len(isos))
-    thick = (dgs / gn)[inner] if inner.any() else dgs / gn
+    thick_all = (edges[slab_id + 1] - edges[slab_id]) / gn
+    printed = slab_id < len(isos)                       # below the last isovalue: printed by some layer
+    thick = thick_all[printed & ~low] if (printed & ~low).any() else thick_all
     report = {
         "thickness_min": float(thick.min()),
         "thickness_median": float(np.median(thick)),
         "thickness_max": float(thick.max()),
         "fraction_outside_range": float(np.mean((thick < config.t_min - 1e-9) | (thick > config.t_max + 1e-9))),
+        "low_gradient_fraction": float(low.mean()),
+        "low_gradient_thickness_max": float(thick_all[low & printed].max(initial=0.0)),
+        "top_gap_max": float(thick_all[~printed].max(initial=0.0)),
     }
     return isos, report
 

@@ -42,6 +42,18 @@ class CollisionReport:
         """Number of colliding waypoints."""
         return int(len(self.indices))
 
+    def replaced(self, checked: IndexArray, again: "CollisionReport") -> "CollisionReport":
+        """This report with the waypoints ``checked`` again replaced by what the new check found there."""
+        keep = ~np.isin(self.indices, checked)
+        idx = np.concatenate([self.indices[keep], again.indices])
+        order = np.argsort(idx, kind="stable")
+        return CollisionReport(idx[order], np.concatenate([self.locations[keep], again.locations])[order],
+                               np.concatenate([self.kind[keep], again.kind])[order])
+
+    def subset(self, mask: BoolArray) -> "CollisionReport":
+        """The collisions selected by a boolean mask over this report's entries."""
+        return CollisionReport(self.indices[mask], self.locations[mask], self.kind[mask])
+
     def summary(self) -> dict:
         """JSON-able counts."""
         return {"n_collisions": self.count, "n_part_collisions": int((self.kind == PART).sum()),
@@ -188,24 +200,31 @@ def head_collisions(xyz: FloatArray, axis: FloatArray, material: FloatArray, noz
                       nozzle, min_height)
 
 
+def default_min_height(tp: Toolpaths) -> float:
+    """Material closer to the tip than this along the axis is the bead being laid: the largest line width, at least 0.3 mm."""
+    return max(0.3, float(tp.width.max(initial=0.0)))
+
+
 def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_height: float | None = None,
-                     platform_tolerance: float = 1e-6) -> CollisionReport:
+                     platform_tolerance: float = 1e-6, only: IndexArray | None = None) -> CollisionReport:
     """Waypoints where the head hits earlier layers' material or the platform (see module doc).
 
     min_height : material closer than this to the tip along the axis is ignored (default: the
-    largest line width, at least 0.3 mm), so the beads touching the nozzle are not counted.
+    largest line width, at least 0.3 mm), so the beads touching the nozzle are not counted;
+    only : check just these waypoints (the material is still every earlier layer's).
     """
     n = len(tp)
     if n == 0:
         return CollisionReport(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int8))
     if min_height is None:
-        min_height = max(0.3, float(tp.width.max(initial=0.0)))
+        min_height = default_min_height(tp)
+    wanted = np.ones(n, bool) if only is None else np.isin(np.arange(n), only)
     hit = np.zeros(n, bool)
     loc = np.zeros((n, 3))
     kind = np.zeros(n, np.int8)
     # platform (exact)
     clear = platform_clearance(tp.xyz, tp.axis, nozzle, platform_z)
-    plat = clear < -platform_tolerance
+    plat = (clear < -platform_tolerance) & wanted
     hit |= plat
     loc[plat] = np.c_[tp.xyz[plat, :2], np.full(int(plat.sum()), platform_z)]
     kind[plat] = PLATFORM
@@ -215,12 +234,13 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
     bounds = np.flatnonzero(np.diff(layers)) + 1
     material = _TreeSet()
     for grp in np.split(order, bounds):
-        if material.blocks:
-            g_hit, g_loc = _head_hits(material, tp.xyz[grp], tp.axis[grp], nozzle, min_height)
-            new = g_hit & ~hit[grp]
-            hit[grp[new]] = True
-            loc[grp[new]] = g_loc[new]
-            kind[grp[new]] = PART
+        ask = grp[wanted[grp]]
+        if material.blocks and len(ask):
+            g_hit, g_loc = _head_hits(material, tp.xyz[ask], tp.axis[ask], nozzle, min_height)
+            new = g_hit & ~hit[ask]
+            hit[ask[new]] = True
+            loc[ask[new]] = g_loc[new]
+            kind[ask[new]] = PART
         on_layer = grp[tp.path[grp] >= 0]
         material.add(tp.xyz[on_layer])
     idx = np.flatnonzero(hit)

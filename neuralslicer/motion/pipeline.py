@@ -9,9 +9,10 @@ import numpy as np
 import trimesh
 
 from neuralslicer.layers import LayerConfig
-from neuralslicer.motion.collision import CollisionReport, check_collisions
+from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.motion.reorient import tilt_away
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.types import Toolpaths
@@ -37,11 +38,14 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     t0 = time.perf_counter()
     tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max)
     t1 = time.perf_counter()
-    program = plan_motion(tp, profile, platform_z=platform_z)
-    t2 = time.perf_counter()
     report = check_collisions(tp, profile.nozzle, platform_z)
+    t2 = time.perf_counter()
+    tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg)
     t3 = time.perf_counter()
+    program = plan_motion(tp, profile, platform_z=platform_z)
+    t4 = time.perf_counter()
     metrics = program_metrics(program)
+    metrics["axis_tilt"] = tilt
     metrics["n_waypoints"] = len(tp)
     metrics["n_layers"] = tp.n_layers
     metrics["n_paths"] = int(tp.attrs.get("n_paths", 0))
@@ -54,6 +58,44 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
         h = np.asarray(solid_H(tp.xyz[on & tp.extrude]), np.float64)
         metrics["n_waypoints_outside_solid"] = int((h > 1e-3).sum())
         metrics["max_H_at_waypoints"] = float(h.max(initial=-np.inf))
-    metrics["timings_s"] = {"toolpaths": t1 - t0, "motion": t2 - t1, "collisions": t3 - t2}
+    metrics["timings_s"] = {"toolpaths": t1 - t0, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
+
+
+def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,
+                cfg: ToolpathConfig, passes: int = 3) -> tuple[Toolpaths, CollisionReport, dict]:
+    """Tilt the tool axis clear at stray colliding waypoints (``cfg.collision_tilt_deg``); every tilted
+    waypoint is checked again exactly (the material, earlier waypoints' positions, does not move), and a
+    pass that does not lower the count is dropped. Later passes try the collisions the ramps caused."""
+    summary = {"n_collisions_before": report.count, "n_collisions_cleared": 0, "n_untiltable_collisions": 0,
+               "n_waypoints_tilted": 0, "max_tilt_deg": 0.0}
+    if not report.count or cfg.collision_tilt_deg <= 0 or report.count > cfg.collision_tilt_max_waypoints:
+        return tp, report, summary
+    min_height = default_min_height(tp)
+    untiltable = np.zeros(0, np.int64)
+    changed: list[np.ndarray] = []
+    max_tilt = 0.0
+    for _ in range(passes):
+        todo = report.subset(~np.isin(report.indices, untiltable))
+        if not todo.count:
+            break
+        tilted, how = tilt_away(tp, todo, profile.nozzle, platform_z, min_height,
+                                max_tilt_deg=cfg.collision_tilt_deg, ramp_mm=cfg.collision_tilt_ramp)
+        untiltable = np.union1d(untiltable, how.unfixed)
+        if len(how.fixed) == 0:
+            break
+        after = report.replaced(how.changed, check_collisions(tilted, profile.nozzle, platform_z, min_height,
+                                                              only=how.changed))
+        if after.count >= report.count:
+            break
+        tp, report = tilted, after
+        changed.append(how.changed)
+        max_tilt = max(max_tilt, float(how.tilt_deg.max(initial=0.0)))
+    if changed:
+        all_changed = np.unique(np.concatenate(changed))
+        tp.attrs["tilted_waypoints"] = [int(i) for i in all_changed[:1000]]
+        summary.update({"n_waypoints_tilted": int(len(all_changed)), "max_tilt_deg": max_tilt,
+                        "n_collisions_cleared": summary["n_collisions_before"] - report.count})
+    summary["n_untiltable_collisions"] = int(np.isin(report.indices, untiltable).sum())
+    return tp, report, summary

@@ -175,6 +175,12 @@ class OptimConfig(BaseModel):
         description="converged once the overhang area fraction of B is at most this, no pool point's head "
         "(grown by half the L_GC clearance) reaches earlier material or the platform, and the corrected step "
         "has L_CA = 0: the constraints are met (0: off; not with a strength objective, which has no such state)")
+    target_overhang_late: float = Field(
+        1e-2, ge=0,
+        description="from step late_after on, the constraint stop accepts this overhang fraction instead (still "
+        "with no head collision and L_CA = 0). Some cages cross a saddle slowly (2,255 steps, 4 min on one ring "
+        "cage against 150-790 on others); this bounds the wait at an overhang far below planar layers' (0: off)")
+    late_after: int = Field(500, ge=0, description="step from which target_overhang_late applies")
     check_every: int = Field(
         10, ge=1, description="steps between searches for L_GC's pairs near collision and constraint checks")
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")

@@ -407,7 +407,7 @@ def iterate(problem: FieldProblem, st: LoopState, first: bool) -> int | None:
         if st.best_state is not None:  # the best loss again, on the new pairs
             st.best_state["loss"] = loss_of(problem, st.fields, st.best_state["fields"])
     total, terms, n_corr, n_viol = corrected_evaluation(problem, st.fields)
-    if check and st.step > 0 and n_viol == 0 and problem.constraints_met(st.fields):
+    if check and st.step > 0 and n_viol == 0 and problem.constraints_met(st.fields, st.step):
         st.converged, st.best_state = True, None  # this (corrected) iterate is the result
         return None
     tv = float(total.detach())

@@ -178,18 +178,19 @@ class FieldProblem:
                                torch.from_numpy(g.pair_normals), self.phi)
         return e.numpy()
 
-    def constraints_met(self, fields: DeformationFields) -> bool:
-        """Support-free within ``optim.target_overhang`` (area fraction of B) and no head collision
-        (none in the pool with the head grown by half its clearance); never with a strength objective,
-        which has no satisfied state (always False when target_overhang is 0 or SF is off). L_CA = 0 is
-        the caller's part: the DC3 correction before each evaluation reports it."""
+    def constraints_met(self, fields: DeformationFields, step: int = 0) -> bool:
+        """Support-free within ``optim.target_overhang`` (area fraction of B; ``target_overhang_late`` from
+        step ``late_after`` on) and no head collision (none in the pool with the head grown by half its
+        clearance); never with a strength objective, which has no satisfied state (always False when
+        target_overhang is 0 or SF is off). L_CA = 0 is the caller's part: the DC3 correction before each
+        evaluation reports it."""
         cl, oc = self.config.loss, self.config.optim
         if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
             return False
+        target = max(oc.target_overhang, oc.target_overhang_late) if step >= oc.late_after else oc.target_overhang
         G, grad = self.field(fields)
         d = unit(grad[self.b_tet_t]).double().cpu().numpy()
-        if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
-                                  cl.alpha_deg) > oc.target_overhang:
+        if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d, cl.alpha_deg) > target:
             return False
         return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
 

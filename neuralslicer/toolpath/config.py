@@ -48,6 +48,13 @@ class ToolpathConfig(BaseModel):
     #: where the ray along -LPD misses everything below); the first layer's distance to the platform
     #: is capped at ``t_max`` itself. The thickness limits live in one place, ``LayerConfig``.
     thickness_cap_factor: float = Field(1.5, ge=1)
+    #: waypoints where the head still hits earlier layers get their tool axis tilted away from the LPD
+    #: by the smallest angle up to this (degrees; 0: never) that clears the head, the tilt fading out
+    #: along the path over ``collision_tilt_ramp`` mm; the layers are unchanged.
+    collision_tilt_deg: float = Field(15.0, ge=0, le=45)
+    collision_tilt_ramp: float = Field(5.0, ge=0)
+    #: more colliding waypoints than this are not tilted (the field itself needs to change).
+    collision_tilt_max_waypoints: int = Field(20000, ge=0)
     #: patches whose area is below this (mm^2) are skipped (marching-tet slivers).
     min_patch_area: float = Field(0.05, ge=0)
 

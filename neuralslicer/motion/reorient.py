@@ -1,0 +1,152 @@
+"""Tilting the tool axis away from stray collisions, within a bound, without touching the layers.
+
+An optimised field can leave a handful of waypoints where the head grazes earlier layers (one in
+300,000 on a ring cage in nine). Re-optimising the whole field for them costs minutes and gives away
+support-free gain; instead the tool axis is tilted away from the LPD there (the bead is still laid
+on the same layer). Colliding waypoints closer than two ramps along one path form a run; the whole
+run turns by one rotation, the smallest (up to ``max_tilt_deg``) that clears the head at every one
+of them, the directions first tried pointing away from the material hit. The rotation fades out
+linearly over ``ramp_mm`` of path on both sides, so the rotary axes move smoothly (at most
+``max_tilt_deg / ramp_mm`` degrees per mm on top of the LPD's own turning). The exact collision
+check stays the judge: the caller checks the tilted program again.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from neuralslicer.motion.collision import CollisionReport, _head_hits, _TreeSet, platform_clearance
+from neuralslicer.motion.profile import Nozzle
+from neuralslicer.toolpath.types import Toolpaths
+from neuralslicer.types import FloatArray, IndexArray
+
+
+@dataclass
+class Reorientation:
+    """What the tilt did: colliding waypoints cleared (with their tilts, deg) and not, and every waypoint whose axis changed."""
+
+    fixed: IndexArray
+    unfixed: IndexArray
+    changed: IndexArray
+    tilt_deg: FloatArray
+
+    def summary(self) -> dict:
+        """JSON-able counts for metrics.json."""
+        return {"n_tilted_collisions": int(len(self.fixed)), "n_untiltable_collisions": int(len(self.unfixed)),
+                "n_waypoints_tilted": int(len(self.changed)),
+                "max_tilt_deg": float(self.tilt_deg.max(initial=0.0))}
+
+
+def _rotate(vectors: FloatArray, rotvec: FloatArray) -> FloatArray:
+    """Rotate unit vectors (n,3) by rotation vectors (n,3) (axis times angle in radians; Rodrigues)."""
+    angle = np.linalg.norm(rotvec, axis=1)
+    k = rotvec / np.where(angle > 0, angle, 1.0)[:, None]
+    c, sn = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    out = vectors * c + np.cross(k, vectors) * sn + k * np.einsum("ij,ij->i", k, vectors)[:, None] * (1 - c)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _runs(tp: Toolpaths, idx: IndexArray, arc: FloatArray, gap_mm: float) -> list[IndexArray]:
+    """Colliding waypoints grouped into runs: same path, consecutive ones less than ``gap_mm`` of path apart
+    (travel waypoints are runs of their own)."""
+    runs: list[IndexArray] = []
+    idx = np.sort(idx)
+    start = 0
+    for j in range(1, len(idx) + 1):
+        if j < len(idx) and tp.path[idx[j]] >= 0 and tp.path[idx[j]] == tp.path[idx[j - 1]] \
+                and arc[idx[j]] - arc[idx[j - 1]] < gap_mm:
+            continue
+        runs.append(idx[start:j])
+        start = j
+    return runs
+
+
+def _trial_rotations(axis: FloatArray, away: FloatArray, tilts_deg: FloatArray, n_azimuth: int
+                     ) -> tuple[FloatArray, FloatArray]:
+    """Rotation vectors (k,3) tilting ``axis`` by each tilt toward each azimuth, in trial order (smallest
+    tilt first, azimuths nearest ``away`` first), and the tilts (k,) in degrees."""
+    helper = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    phi0 = np.arctan2(away @ v, away @ u)
+    steps = np.arange(n_azimuth)
+    phi = phi0 + np.radians(360.0 / n_azimuth) * ((steps + 1) // 2) * np.where(steps % 2, 1, -1)   # 0, +1, -1, ...
+    side = np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v              # (n_azimuth, 3) unit, normal to axis
+    turn = np.cross(axis, side)                                              # rotating axis toward side
+    th = np.radians(np.repeat(tilts_deg, n_azimuth))
+    return np.tile(turn, (len(tilts_deg), 1)) * th[:, None], np.degrees(th)
+
+
+def _run_rotation(tp: Toolpaths, run: IndexArray, hit_at: FloatArray, material: _TreeSet, nozzle: Nozzle,
+                  platform_z: float, min_height: float, tilts_deg: FloatArray, n_azimuth: int
+                  ) -> tuple[FloatArray | None, float]:
+    """The first trial rotation clearing the head at every waypoint of the run, and its tilt (None, nan if none)."""
+    xyz, axis = tp.xyz[run], tp.axis[run]
+    mean_axis = axis.sum(axis=0)
+    mean_axis /= np.linalg.norm(mean_axis)
+    away = (xyz - hit_at).sum(axis=0)
+    away -= (away @ mean_axis) * mean_axis
+    rot, tilt = _trial_rotations(mean_axis, away, tilts_deg, n_azimuth)
+    k = len(rot)
+    poses_xyz = np.tile(xyz, (k, 1))
+    poses_axis = _rotate(np.tile(axis, (k, 1)), np.repeat(rot, len(run), axis=0))
+    hit, _ = _head_hits(material, poses_xyz, poses_axis, nozzle, min_height)
+    ok = ~hit & (platform_clearance(poses_xyz, poses_axis, nozzle, platform_z) >= 0)
+    clears = ok.reshape(k, len(run)).all(axis=1)
+    if not clears.any():
+        return None, float("nan")
+    best = int(np.argmax(clears))
+    return rot[best], float(tilt[best])
+
+
+def _arc_length(tp: Toolpaths) -> FloatArray:
+    """Arc length along each path at every waypoint (restarting at each path)."""
+    seg = np.linalg.norm(np.diff(tp.xyz, axis=0), axis=1)
+    seg[tp.path[1:] != tp.path[:-1]] = 0.0
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def tilt_away(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z: float, min_height: float,
+              max_tilt_deg: float = 15.0, ramp_mm: float = 5.0, n_azimuth: int = 12
+              ) -> tuple[Toolpaths, Reorientation]:
+    """A copy of ``tp`` with the tool axis tilted clear at colliding waypoints where a tilt up to
+    ``max_tilt_deg`` does it (see module doc), and what was changed."""
+    idx = np.asarray(report.indices, np.int64)
+    where_hit = dict(zip(idx.tolist(), report.locations))
+    tilts = np.linspace(0.0, max_tilt_deg, int(np.ceil(max_tilt_deg / 2.5)) + 1)[1:]
+    arc = _arc_length(tp)
+    rotvec = np.zeros((len(tp), 3))
+    weight = np.zeros(len(tp))
+    fixed, unfixed, tilt_deg = [], [], []
+    for layer in np.unique(tp.layer[idx]):
+        first = int(np.flatnonzero(tp.layer == layer)[0])
+        material = _TreeSet()
+        material.add(tp.xyz[:first][tp.path[:first] >= 0])
+        for run in _runs(tp, idx[tp.layer[idx] == layer], arc, 2.0 * ramp_mm):
+            hit_at = np.array([where_hit[int(i)] for i in run])
+            rot, tilt = _run_rotation(tp, run, hit_at, material, nozzle, platform_z, min_height, tilts, n_azimuth)
+            if rot is None:
+                unfixed += run.tolist()
+                continue
+            fixed += run.tolist()
+            tilt_deg += [tilt] * len(run)
+            if tp.path[run[0]] < 0 or ramp_mm <= 0:
+                ids, frac = run, np.ones(len(run))
+            else:
+                same = np.flatnonzero(tp.path == tp.path[run[0]])
+                s = arc[same]
+                dist = np.maximum(np.maximum(arc[run[0]] - s, s - arc[run[-1]]), 0.0)
+                near = dist < ramp_mm
+                ids, frac = same[near], 1.0 - dist[near] / ramp_mm
+            stronger = frac > weight[ids]
+            rotvec[ids[stronger]] = rot * frac[stronger, None]
+            weight[ids[stronger]] = frac[stronger]
+    changed = np.flatnonzero(weight > 0)
+    axis = tp.axis.copy()
+    axis[changed] = _rotate(tp.axis[changed], rotvec[changed])
+    out = Toolpaths(layer=tp.layer, path=tp.path, xyz=tp.xyz, axis=axis, thickness=tp.thickness, width=tp.width,
+                    extrude=tp.extrude, attrs=dict(tp.attrs))
+    return out, Reorientation(np.asarray(fixed, np.int64), np.asarray(unfixed, np.int64), changed,
+                              np.asarray(tilt_deg, np.float64))

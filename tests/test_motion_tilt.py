@@ -1,0 +1,94 @@
+"""Tilting the tool axis clear of stray collisions: the smallest tilt away from the hit, ramped, judged exactly."""
+from __future__ import annotations
+
+import numpy as np
+
+from neuralslicer.motion import check_collisions
+from neuralslicer.motion.profile import Nozzle
+from neuralslicer.motion.reorient import tilt_away
+from neuralslicer.toolpath.types import Toolpaths
+
+NOZZLE = Nozzle(cone_half_angle_deg=30.0, cone_length=8.0, holder_radius=15.0, holder_length=30.0)
+
+
+def _bump_and_path(bump_top: float) -> Toolpaths:
+    """Layer 0: material at x = 2, |y| <= 0.5, z from 3.5 to ``bump_top``; layer 1: a path along y at x = z = 0."""
+    gy, gz = np.meshgrid(np.arange(-0.5, 0.51, 0.25), np.arange(3.5, bump_top + 1e-9, 0.25), indexing="ij")
+    bump = np.column_stack([np.full(gy.size, 2.0), gy.ravel(), gz.ravel()])
+    y = np.arange(-10.0, 10.01, 0.5)
+    path = np.column_stack([np.zeros_like(y), y, np.zeros_like(y)])
+    xyz = np.concatenate([bump, path])
+    n0, n1 = len(bump), len(path)
+    return Toolpaths(layer=np.r_[np.zeros(n0, np.int64), np.ones(n1, np.int64)],
+                     path=np.r_[np.zeros(n0, np.int64), np.ones(n1, np.int64)], xyz=xyz,
+                     axis=np.tile([0.0, 0.0, 1.0], (n0 + n1, 1)), thickness=np.full(n0 + n1, 0.5),
+                     width=np.full(n0 + n1, 0.5), extrude=np.ones(n0 + n1, bool))
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0)))
+
+
+def test_a_small_tilt_away_from_the_bump_clears_the_head():
+    tp = _bump_and_path(4.5)
+    before = check_collisions(tp, NOZZLE, platform_z=-10.0)
+    assert before.count > 0 and set(tp.layer[before.indices]) == {1}
+    tilted, how = tilt_away(tp, before, NOZZLE, platform_z=-10.0, min_height=0.5, max_tilt_deg=15.0, ramp_mm=5.0)
+    assert check_collisions(tilted, NOZZLE, platform_z=-10.0).count == 0
+    assert len(how.fixed) == before.count and len(how.unfixed) == 0
+    # brute force at the waypoint facing the bump: the smallest tilt along -x that clears every bump point,
+    # rounded up to the 2.5 deg trial steps, is the one chosen
+    bump = tp.xyz[tp.layer == 0]
+    theta = np.radians(np.arange(0.0, 15.0, 0.01))
+    axes = np.column_stack([-np.sin(theta), np.zeros_like(theta), np.cos(theta)])
+    h = bump @ axes.T                                                           # tip at the origin
+    radial = np.sqrt(np.maximum((bump ** 2).sum(1)[:, None] - h ** 2, 0.0))
+    clear = ~((h <= 8.0) & (radial <= h * np.tan(np.radians(30.0)))).any(axis=0)
+    theta_min = np.degrees(theta[np.argmax(clear)])
+    centre = int(np.flatnonzero((tp.layer == 1) & (tp.xyz[:, 1] == 0.0))[0])
+    assert np.isclose(how.tilt_deg[list(how.fixed).index(centre)], np.ceil(theta_min / 2.5) * 2.5)
+    assert how.tilt_deg.max() <= 7.5 + 1e-9
+    assert (tilted.axis[before.indices, 0] < 0).all()
+    assert np.array_equal(tilted.xyz, tp.xyz)                                   # the layers are untouched
+    tilt = _angle_deg(tilted.axis, tp.axis)
+    on_path = tp.layer == 1
+    assert tilt[~on_path].max() == 0.0                                          # other paths untouched
+    assert tilt[on_path].max() <= 7.5 + 1e-9
+    far = on_path & (np.abs(tp.xyz[:, 1]) > 2.0 + 5.0)                          # beyond the ramp
+    assert tilt[far].max() == 0.0
+    step = _angle_deg(tilted.axis[on_path][1:], tilted.axis[on_path][:-1])      # ramped: <= 7.5 deg per 5 mm
+    assert step.max() <= 7.5 * 0.5 / 5.0 + 1e-6
+
+
+def test_a_wall_no_tilt_can_clear_is_reported_not_hidden():
+    tp = _bump_and_path(30.0)                                                   # a tall wall: needs > 30 deg
+    before = check_collisions(tp, NOZZLE, platform_z=-10.0)
+    tilted, how = tilt_away(tp, before, NOZZLE, platform_z=-10.0, min_height=0.5, max_tilt_deg=15.0)
+    assert len(how.fixed) == 0 and len(how.unfixed) == before.count
+    assert np.array_equal(tilted.axis, tp.axis)
+
+
+def test_checking_a_subset_agrees_with_the_full_check():
+    tp = _bump_and_path(4.5)
+    full = check_collisions(tp, NOZZLE, platform_z=-10.0)
+    some = np.arange(len(tp))[::3]
+    part = check_collisions(tp, NOZZLE, platform_z=-10.0, only=some)
+    assert np.array_equal(part.indices, np.intersect1d(full.indices, some))
+    merged = full.replaced(some, part)
+    assert np.array_equal(merged.indices, full.indices)
+
+
+def test_plan_print_tilts_then_judges_again():
+    from neuralslicer.motion import load_profile
+    from neuralslicer.motion.pipeline import _tilt_clear
+    from neuralslicer.toolpath import ToolpathConfig
+
+    profile = load_profile("table_bc_linuxcnc").model_copy(update={"nozzle": NOZZLE})
+    tp = _bump_and_path(4.5)
+    before = check_collisions(tp, NOZZLE, platform_z=-10.0)
+    out, after, summary = _tilt_clear(tp, before, profile, -10.0, ToolpathConfig())
+    assert after.count == 0 and check_collisions(out, NOZZLE, platform_z=-10.0).count == 0
+    assert summary["n_collisions_before"] == before.count == summary["n_collisions_cleared"]
+    assert 0 < summary["max_tilt_deg"] <= 15.0 and summary["n_waypoints_tilted"] > before.count
+    off, same, none = _tilt_clear(tp, before, profile, -10.0, ToolpathConfig(collision_tilt_deg=0))
+    assert off is tp and same.count == before.count and none["n_waypoints_tilted"] == 0
