@@ -9,6 +9,7 @@ from cli.options import ArgumentParser, add_slicing_options, build_config, run_i
 from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
 from neuralslicer.neural.device import limit_threads
+from neuralslicer.preflight import preflight
 
 
 def parse_counts(text: str) -> list[int]:
@@ -20,6 +21,17 @@ def parse_counts(text: str) -> list[int]:
     if not counts or min(counts) < 200:
         raise InputError("--cage-elements", "give element counts of at least 200, e.g. 4000,8000,16000")
     return counts
+
+
+def check_model(model: Path, args: argparse.Namespace, config: Any, out_dir: Path, store: str) -> None:
+    """The slice command's checks before any work (outputs, store, scale, layer count, machine, FEA) for one model."""
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+
+    spec = spec_for_file(model, args.up or "z", getattr(args, "units", None) or "mm")
+    solid = implicit_solid(spec)
+    preflight(spec, solid, config, out_dir, store, force=getattr(args, "force", False),
+              needs_fea=config.verify or "sr" in config.objectives_for(spec))
 
 
 def cmd_study(args: argparse.Namespace) -> int:
@@ -38,13 +50,17 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.study == "initial-guess" and args.user_field is not None and not Path(args.user_field).is_file():
         raise InputError(args.user_field, "no such file (--user-field takes an .npz with points and values)")
 
+    store_path = args.store or str(out_dir / "store.zarr")
+    for m in models:
+        check_model(Path(m), args, config, out_dir, store_path)
+
     def job() -> int:
         prefect_environment()
         limit_threads()
         from flows.studies import batch_study, cage_study, initial_guess_study
         from storage import ArtifactStore
 
-        store = ArtifactStore(args.store or str(out_dir / "store.zarr")).root
+        store = ArtifactStore(store_path).root
         common = dict(out_dir=str(out_dir), up=args.up, store=store, config=config, dask=args.dask,
                       dask_workers=args.dask_workers, max_workers=args.workers)
         if args.study == "initial-guess":

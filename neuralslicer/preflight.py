@@ -63,7 +63,9 @@ def check_scale(solid: Solid, spec: ModelSpec) -> float:
         factors = {"m": 1000.0, "cm": 10.0, "in": 25.4, "mm": 1.0}
         raw = diag / factors[spec.units]
         hint = [u for u, f in factors.items() if small <= raw * f <= large and u != spec.units]
-        raise InputError("model", f"the model is {diag:.4g} mm across (bounding-box diagonal), implausible for a "
+        files = spec.files()
+        where = spec.source or (files[0] if files else "model")
+        raise InputError(where, f"the model is {diag:.4g} mm across (bounding-box diagonal), implausible for a "
                          f"print in {spec.units}: its coordinates are probably in another unit; give "
                          + (" or ".join(f"--units {u}" for u in hint) if hint else "the right --units")
                          + " (or 'units:' in a spec)")

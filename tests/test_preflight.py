@@ -172,3 +172,12 @@ def test_threads_follow_the_cpus_available(tmp_path, monkeypatch):
     assert device.available_cpus(quota) == 2
     quota.write_text("max 100000\n")
     assert device.available_cpus(quota) == 8
+
+
+def test_studies_run_the_same_checks(tmp_path, part, capsys):
+    out = tmp_path / "out"
+    out.write_text("not a folder")
+    refuse(capsys, ["study", "cages", str(part), "--out", str(out), "--cage-elements", "500,800"], "--out", "is a file")
+    big = scaled(tmp_path, 1000.0)                               # m read as mm, in a batch
+    refuse(capsys, ["study", "batch", str(part), str(big), "--out", str(tmp_path / "b")], "part_x1000")
+    assert not (tmp_path / "b").exists()
