@@ -151,3 +151,26 @@ def test_chunked_writing_equals_one_piece(tmp_path, monkeypatch, curved, profile
     monkeypatch.setattr(writers, "_CHUNK", 7)
     pieces = write_gcode(tmp_path / "b.gcode", prog).read_text()
     assert pieces == whole
+
+
+@pytest.mark.parametrize("profile_name", ["table_bc_linuxcnc", "reprap_5axis"])
+def test_every_layer_is_marked_before_its_first_move(tmp_path, curved, profile_name):
+    tp, _, _ = curved
+    program = plan_motion(tp, load_profile(profile_name), platform_z=0.0)
+    lines = write_gcode(tmp_path / "print.gcode", program).read_text().splitlines()
+    marks = [i for i, ln in enumerate(lines) if "LAYER " in ln and "/ " in ln]
+    n_layers = len(np.unique(program.layer))
+    assert len(marks) == n_layers
+    numbers = [int(re.search(r"LAYER (\d+) / (\d+)", lines[i]).group(1)) for i in marks]
+    assert numbers == list(range(1, n_layers + 1))
+    # the moves between two marks are exactly one layer's moves, in program order
+    lx, ly, lz, lb, lc, le = program.axis_letters
+    moves = parse_gcode("\n".join(lines) + "\n", axes=lx + ly + lz + lb + lc + le)
+    move_line = moves.line - 1
+    layer_of_move = np.searchsorted(np.asarray(marks), move_line) - 1
+    layer_of_move[layer_of_move < 0] = 0                         # the approach move before the first mark
+    assert np.array_equal(layer_of_move, np.unique(program.layer, return_inverse=True)[1])
+    assert "machine: " in "\n".join(lines[:12])
+    if profile_name == "reprap_5axis":
+        progress = [int(re.match(r"M73 P(\d+)", ln).group(1)) for ln in lines if ln.startswith("M73")]
+        assert progress[0] == 0 and progress[-1] == 100 and np.all(np.diff(progress) >= 0)

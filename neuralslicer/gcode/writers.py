@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -51,6 +52,49 @@ def _axis_columns(program: MachineProgram, start: int, stop: int) -> list[np.nda
     return [c[start - lo:] for c in cols]
 
 
+def _layer_segments(program: MachineProgram, first: int = 0) -> Iterator[tuple[int, int, dict | None]]:
+    """(start, stop, layer info or None) over moves first..n-1: one segment per layer (info: its number,
+    the count, the build-frame z range, the elapsed time and the fraction done at its start), cut into
+    chunks of at most _CHUNK moves (info only on a layer's first chunk)."""
+    n = len(program)
+    layer = program.layer
+    starts = np.flatnonzero(np.diff(layer)) + 1
+    bounds = np.concatenate([[0], starts, [n]])
+    elapsed = np.concatenate([[0.0], np.cumsum(program.time_s)])
+    total = max(float(elapsed[-1]), 1e-9)
+    n_layers = len(bounds) - 1
+    for k in range(n_layers):
+        a, b = int(bounds[k]), int(bounds[k + 1])
+        a = max(a, first)
+        if a >= b:
+            continue
+        z = program.part_xyz[a:b, 2]
+        info = {"number": k + 1, "count": n_layers, "z": (float(z.min()), float(z.max())),
+                "elapsed_s": float(elapsed[a]), "done": float(elapsed[a] / total), "remaining_s": total - float(elapsed[a])}
+        for c in range(a, b, _CHUNK):
+            yield c, min(c + _CHUNK, b), info if c == a else None
+
+
+def _layer_comment(info: dict) -> str:
+    """``LAYER k / n, build z lo..hi mm, at h:mm:ss, p % of the time`` (no brackets: LinuxCNC comments do not nest)."""
+    t = int(round(info["elapsed_s"]))
+    return (f"LAYER {info['number']} / {info['count']}, build z {info['z'][0]:.3f}..{info['z'][1]:.3f} mm, "
+            f"at {t // 3600}:{t // 60 % 60:02d}:{t % 60:02d}, {100 * info['done']:.1f} % of the time")
+
+
+def _machine_comment(program: MachineProgram) -> list[str]:
+    """The kinematic set-up the program was computed for (what the operator must match on the machine)."""
+    k = program.profile.kinematics
+    v = lambda t: " ".join(f"{x:.4f}" for x in t)  # noqa: E731
+    c_span = ("unlimited" if k.c_min_deg is None and k.c_max_deg is None
+              else f"{k.c_min_deg if k.c_min_deg is not None else '-inf'}..{k.c_max_deg if k.c_max_deg is not None else 'inf'}")
+    return [f"machine: {program.profile.name}, table B/C, tool tip at the pivot = machine {v(k.pivot)} mm",
+            f"machine: C axis on the table at pivot + {v(k.c_offset)} mm at B = 0; B range {k.b_min_deg:g}..{k.b_max_deg:g} deg, "
+            f"C range {c_span} deg",
+            f"machine: program B {program.attrs.get('b_range_deg', [0, 0])[0]:.2f}..{program.attrs.get('b_range_deg', [0, 0])[1]:.2f} deg, "
+            f"C {program.attrs.get('c_range_deg', [0, 0])[0]:.2f}..{program.attrs.get('c_range_deg', [0, 0])[1]:.2f} deg"]
+
+
 def _summary_comment(program: MachineProgram, open_c: str, close_c: str) -> list[str]:
     met = program_metrics(program)
     lx, ly, lz, lb, lc, le = program.axis_letters
@@ -61,7 +105,7 @@ def _summary_comment(program: MachineProgram, open_c: str, close_c: str) -> list
         f"{open_c}part offset on the C axis: {' '.join(f'{v:.4f}' for v in program.part_offset)}{close_c}",
         f"{open_c}moves {met['n_moves']}, waypoints {met['n_waypoints']}, est. time "
         f"{met['estimated_print_time_s']:.1f} s, material {met['material_mm3']:.1f} mm3{close_c}",
-    ]
+    ] + [f"{open_c}{line}{close_c}" for line in _machine_comment(program)]
 
 
 def _linuxcnc_body(program: MachineProgram, start: int, stop: int) -> list[str]:
@@ -90,8 +134,8 @@ def _linuxcnc_chunks(program: MachineProgram):
     yield head
     yield _linuxcnc_body(program, 0, min(1, n))
     yield ["G93" if g.inverse_time else "G94"]
-    for start in range(1, n, _CHUNK):
-        yield _linuxcnc_body(program, start, min(start + _CHUNK, n))
+    for start, stop, info in _layer_segments(program, first=1):
+        yield ([f"({_layer_comment(info)})"] if info else []) + _linuxcnc_body(program, start, stop)
     yield ["G94", "G92.1"] + list(g.footer) + ["M2"]
 
 
@@ -125,10 +169,11 @@ def _reprap_chunks(program: MachineProgram):
         head += [f"M104 S{g.nozzle_temp_c:.0f}", f"M109 S{g.nozzle_temp_c:.0f}"]
     head += [f"G92 {program.axis_letters[5]}0"] + list(g.header)
     yield head
-    n = len(program)
-    for start in range(0, n, _CHUNK):
-        yield _reprap_body(program, start, min(start + _CHUNK, n))
-    yield ["M104 S0", "M140 S0"] + list(g.footer) + ["M84"]
+    for start, stop, info in _layer_segments(program):
+        layer = ([f";LAYER:{info['number'] - 1}", f"; {_layer_comment(info)}",
+                  f"M73 P{int(100 * info['done'])} R{int(np.ceil(info['remaining_s'] / 60))}"] if info else [])
+        yield layer + _reprap_body(program, start, stop)
+    yield ["M73 P100 R0", "M104 S0", "M140 S0"] + list(g.footer) + ["M84"]
 
 
 def linuxcnc_lines(program: MachineProgram) -> list[str]:
