@@ -25,7 +25,7 @@ STEP_VERSIONS = {
     "field": "2",
     "field_blend": "1",
     "layers": "5",
-    "toolpaths": "4",
+    "toolpaths": "5",
     "verify": "1",
     "export": "3",
 }

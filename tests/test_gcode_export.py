@@ -174,3 +174,40 @@ def test_every_layer_is_marked_before_its_first_move(tmp_path, curved, profile_n
     if profile_name == "reprap_5axis":
         progress = [int(re.match(r"M73 P(\d+)", ln).group(1)) for ln in lines if ln.startswith("M73")]
         assert progress[0] == 0 and progress[-1] == 100 and np.all(np.diff(progress) >= 0)
+
+
+def test_program_starts_and_ends_clear_of_the_part(curved):
+    from neuralslicer.motion import machine_position
+    from neuralslicer.motion.planning import TRAVEL
+
+    tp, _, _ = curved
+    profile = load_profile("table_bc_linuxcnc").model_copy(deep=True)
+    profile.kinematics.pivot = (5.0, -7.0, 60.0)
+    profile.kinematics.c_offset = (0.0, 0.0, 12.0)
+    profile.gcode.park_xy = (100.0, 50.0)
+    prog = plan_motion(tp, profile, platform_z=0.0)
+    z_safe = prog.attrs["safe_z"]
+    src = np.flatnonzero(prog.source >= 0)
+    head, tail = np.arange(src[0]), np.arange(src[-1] + 1, len(prog))
+    # brute force: at the safe height, the tool tip is outside the part at every B/C of a 5 deg grid
+    part = tp.xyz + prog.part_offset
+    kin = profile.kinematics
+    for b in np.arange(-90, 91, 5.0):
+        for c in np.arange(0, 360, 5.0):
+            zs = machine_position(tp.xyz, np.full(len(part), b), np.full(len(part), c), kin, prog.part_offset)[:, 2]
+            assert zs.max() < z_safe
+    # start: first move at the safe height with B = C = 0, rotary axes turned up there, then the approach
+    # straight down the tool axis (machine X, Y fixed), then a prime before the first printing move
+    assert np.allclose(prog.machine[0, 2:], [z_safe, 0.0, 0.0])
+    up = head[prog.machine[head, 2] >= z_safe - 1e-9]
+    assert np.allclose(prog.machine[up, :2], prog.machine[0, :2])
+    assert np.allclose(prog.machine[up[-1], 3:5], prog.machine[src[0], 3:5])
+    first_print = int(np.flatnonzero(prog.kind == PRINT)[0])
+    primes = np.flatnonzero(prog.kind[:first_print] == RETRACT)
+    assert len(primes) == 1 and primes[0] > up[-1] and prog.extruder[first_print - 1] == pytest.approx(profile.extrusion.prime_mm)
+    # end: retract, lift in place, B home and C to a full turn, park
+    assert prog.kind[tail[0]] == RETRACT and np.allclose(prog.machine[tail[0]], prog.machine[src[-1]])
+    assert (prog.machine[tail[1:], 2] >= z_safe - 1e-9).all() and (prog.kind[tail[1:]] == TRAVEL).all()
+    assert prog.machine[-1, 3] == 0.0 and prog.machine[-1, 4] % 360.0 == pytest.approx(0.0, abs=1e-9)
+    assert np.allclose(prog.machine[-1, :2], [100.0, 50.0])
+    assert np.abs(np.diff(prog.machine[:, 3:5], axis=0)).max() <= kin.max_rotary_step_deg + 1e-9

@@ -157,6 +157,62 @@ def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tup
     return out, int(len(r_at))
 
 
+def _rotary_steps(frm: FloatArray, targets: list[FloatArray], max_step_deg: float) -> FloatArray:
+    """Machine poses (k, 5) from ``frm`` through each target, linear in all axes, rotary steps split
+    (a target where the machine already is adds no move)."""
+    out, cur = [], np.asarray(frm, np.float64)
+    for t in targets:
+        t = np.asarray(t, np.float64)
+        if np.allclose(t, cur, rtol=0.0, atol=1e-9):
+            continue
+        n = max(1, int(np.ceil(np.abs(t[3:5] - cur[3:5]).max() / max_step_deg - 1e-9)))
+        out.append(cur + (t - cur) * (np.arange(1, n + 1) / n)[:, None])
+        cur = t
+    return np.concatenate(out) if out else np.zeros((0, 5))
+
+
+def safe_height(program: MachineProgram) -> float:
+    """Machine Z at which the tool tip clears the part at any B/C: above the sphere around the pivot holding it."""
+    kin = program.profile.kinematics
+    reach = float(np.linalg.norm(program.part_xyz + program.part_offset, axis=1).max(initial=0.0))
+    return float(kin.pivot[2] + np.linalg.norm(kin.c_offset) + reach + program.profile.gcode.safe_clearance_mm)
+
+
+def _with_safe_start_end(program: MachineProgram) -> MachineProgram:
+    """The program between a safe start (safe height over the approach point with B = C = 0, rotary axes to the
+    first pose up there, the approach down the tool axis, prime) and a safe end (retract, lift to the safe
+    height, B to 0 and C to its nearest full turn, park): all inserted moves, source -1."""
+    prof = program.profile
+    kin, f, ex, g = prof.kinematics, prof.feeds, prof.extrusion, prof.gcode
+    z_safe = safe_height(program)
+    m0, mn = program.machine[0], program.machine[-1]
+    above0 = np.array([m0[0], m0[1], z_safe, 0.0, 0.0])
+    start = np.vstack([above0[None], _rotary_steps(above0, [np.r_[m0[:2], z_safe, m0[3:5]]], kin.max_rotary_step_deg)])
+    home = np.r_[mn[:2], z_safe, 0.0, 360.0 * np.round(mn[4] / 360.0)]
+    park = np.r_[g.park_xy if g.park_xy is not None else mn[:2], z_safe, home[3:5]]
+    end = _rotary_steps(mn, [np.r_[mn[:2], z_safe, mn[3:5]], home, park], kin.max_rotary_step_deg)
+    # moves: start..., approach (program move 0), prime, program moves 1.., retract, end...
+    machine = np.vstack([start, program.machine[:1], program.machine[:1], program.machine[1:], program.machine[-1:], end])
+    n_s, n_e = len(start), len(end)
+    kind = np.r_[np.full(n_s, TRAVEL), program.kind[:1], RETRACT, program.kind[1:], RETRACT, np.full(n_e, TRAVEL)]
+    de_prog = np.diff(program.extruder, prepend=0.0)
+    de = np.r_[np.zeros(n_s), de_prog[:1], ex.prime_mm, de_prog[1:], -ex.retract_mm, np.zeros(n_e)]
+    seg = np.linalg.norm(np.diff(machine[:, :3], axis=0, prepend=machine[:1, :3]), axis=1)
+    rot = np.abs(np.diff(machine[:, 3:5], axis=0, prepend=machine[:1, 3:5])).max(axis=1)
+    travel_t = np.maximum(seg / f.travel_mm_s, rot / f.rotary_deg_s)
+    t_prog = program.time_s.copy()
+    t_prog[0] = travel_t[n_s]                      # the approach now comes from the safe height
+    time_s = np.r_[travel_t[:n_s], t_prog[:1], ex.prime_mm / f.retract_mm_s, t_prog[1:], ex.retract_mm / f.retract_mm_s,
+                   travel_t[-n_e:]]
+    time_s[0] = 0.0
+    layer = np.r_[np.full(n_s + 2, program.layer[0]), program.layer[1:], np.full(n_e + 1, program.layer[-1])]
+    source = np.r_[np.full(n_s, -1), program.source[:1], -1, program.source[1:], -1, np.full(n_e, -1)]
+    p, a = forward_kinematics(machine[:, :3], machine[:, 3], machine[:, 4], kin, program.part_offset)
+    return MachineProgram(machine=machine, extruder=np.cumsum(de), time_s=time_s, kind=kind.astype(np.int8),
+                          source=source.astype(np.int64), layer=layer.astype(np.int64), part_xyz=p, part_axis=a,
+                          part_offset=program.part_offset, profile=prof, attrs={**program.attrs, "safe_z": z_safe})
+
+
 def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None = None) -> MachineProgram:
     """Machine program for toolpaths: IK with continuous B/C, rotary splitting, feeds, extrusion.
 
@@ -179,8 +235,12 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     program = MachineProgram(machine=machine, extruder=np.cumsum(e["de"]), time_s=e["dt"], kind=e["kind"],
                              source=e["source"].astype(np.int64), layer=e["layer"].astype(np.int64),
                              part_xyz=e["xyz"], part_axis=a_fk, part_offset=offset, profile=profile)
+    if profile.gcode.safe_start_end and len(program):
+        program = _with_safe_start_end(program)
+    machine = program.machine
     b_all = machine[:, 3]
     program.attrs = {
+        **program.attrs,
         "platform_z": pz,
         "n_singular": int(mv["singular"].sum()),
         "n_rotary_out_of_range": int(mv["out"].sum()),

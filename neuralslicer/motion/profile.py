@@ -102,6 +102,14 @@ class GcodeOptions(_Model):
     bed_temp_c: float | None = 60.0
     header: list[str] = Field(default_factory=list)
     footer: list[str] = Field(default_factory=list)
+    #: start at a safe height (rotary axes turned there, then down along the tool axis, prime) and end
+    #: with retract, lift, rotary axes home (C to the nearest full turn), park; false: straight in and out.
+    safe_start_end: bool = True
+    #: the safe height is the tool tip clear of the sphere around the tilt pivot that holds the part at any
+    #: B/C (pivot z + |c_offset| + the part's largest distance from the C-axis origin) by this much (mm).
+    safe_clearance_mm: float = Field(10.0, ge=0)
+    #: machine X, Y to park at after the print (at the safe height); null: stay above the last point.
+    park_xy: tuple[float, float] | None = None
 
 
 class MachineProfile(_Model):
