@@ -170,6 +170,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
     metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
+    metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
     return metrics
 
 

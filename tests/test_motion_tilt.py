@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from neuralslicer.motion import check_collisions
 from neuralslicer.motion.profile import Nozzle
@@ -92,3 +93,23 @@ def test_plan_print_tilts_then_judges_again():
     assert 0 < summary["max_tilt_deg"] <= 15.0 and summary["n_waypoints_tilted"] > before.count
     off, same, none = _tilt_clear(tp, before, profile, -10.0, ToolpathConfig(collision_tilt_deg=0))
     assert off is tp and same.count == before.count and none["n_waypoints_tilted"] == 0
+
+
+def test_axes_beyond_the_b_range_are_turned_back_within_the_tilt_bound():
+    from neuralslicer.motion import load_profile, plan_motion
+    from neuralslicer.motion.reorient import clamp_to_reach
+
+    polar = np.radians(np.array([30.0, 95.0, 105.0, 114.0, 130.0]))
+    phi = np.radians(np.array([0.0, 40.0, 80.0, -120.0, 200.0]))
+    axis = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi), np.cos(polar)])
+    n = len(axis)
+    tp = Toolpaths(layer=np.zeros(n, np.int64), path=np.zeros(n, np.int64), xyz=np.c_[np.arange(n), np.zeros(n), np.ones(n)],
+                   axis=axis, thickness=np.full(n, 0.5), width=np.full(n, 0.5), extrude=np.ones(n, bool))
+    out, summary = clamp_to_reach(tp, 100.0, 15.0)
+    new_polar = np.degrees(np.arccos(out.axis[:, 2]))
+    assert np.allclose(new_polar, [30.0, 95.0, 100.0, 100.0, 130.0])
+    assert np.allclose(np.arctan2(out.axis[:, 1], out.axis[:, 0]), np.arctan2(axis[:, 1], axis[:, 0]))   # azimuth kept
+    assert summary == {"n_clamped": 2, "max_clamp_deg": pytest.approx(14.0), "n_unreachable": 1}
+    profile = load_profile("table_bc_linuxcnc")                                # B within +-100 deg
+    assert plan_motion(tp, profile, platform_z=0.0).attrs["n_rotary_out_of_range"] == 3
+    assert plan_motion(out, profile, platform_z=0.0).attrs["n_rotary_out_of_range"] == 1

@@ -12,7 +12,7 @@ from neuralslicer.layers import LayerConfig
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
-from neuralslicer.motion.reorient import tilt_away
+from neuralslicer.motion.reorient import clamp_to_reach, tilt_away
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.types import Toolpaths
@@ -41,11 +41,13 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     report = check_collisions(tp, profile.nozzle, platform_z)
     t2 = time.perf_counter()
     tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg)
+    tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg)
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     t4 = time.perf_counter()
     metrics = program_metrics(program)
     metrics["axis_tilt"] = tilt
+    metrics["axis_reach"] = reach
     metrics["n_waypoints"] = len(tp)
     metrics["n_layers"] = tp.n_layers
     metrics["n_paths"] = int(tp.attrs.get("n_paths", 0))
@@ -99,3 +101,17 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
                         "n_collisions_cleared": summary["n_collisions_before"] - report.count})
     summary["n_untiltable_collisions"] = int(np.isin(report.indices, untiltable).sum())
     return tp, report, summary
+
+
+def _clamp_reach(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,
+                 cfg: ToolpathConfig) -> tuple[Toolpaths, CollisionReport, dict]:
+    """Tool axes beyond the machine's B range turned back to it (up to ``cfg.collision_tilt_deg``), the turned
+    waypoints checked for collisions again."""
+    kin = profile.kinematics
+    reach_deg = min(180.0, max(kin.b_max_deg, -kin.b_min_deg))
+    clamped, summary = clamp_to_reach(tp, reach_deg, cfg.collision_tilt_deg)
+    if clamped is tp:
+        return tp, report, summary
+    changed = np.flatnonzero(np.any(clamped.axis != tp.axis, axis=1))
+    report = report.replaced(changed, check_collisions(clamped, profile.nozzle, platform_z, only=changed))
+    return clamped, report, summary

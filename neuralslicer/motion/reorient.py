@@ -150,3 +150,24 @@ def tilt_away(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z
                     extrude=tp.extrude, attrs=dict(tp.attrs))
     return out, Reorientation(np.asarray(fixed, np.int64), np.asarray(unfixed, np.int64), changed,
                               np.asarray(tilt_deg, np.float64))
+
+
+def clamp_to_reach(tp: Toolpaths, max_polar_deg: float, max_tilt_deg: float) -> tuple[Toolpaths, dict]:
+    """Tool axes tipped further from +z than the machine's B range reaches (``max_polar_deg``) turned back
+    to that limit, azimuth kept, where that takes at most ``max_tilt_deg``; the others are left (and
+    reported as unreachable). The clamp is continuous in the axis, so paths stay smooth."""
+    a = tp.axis
+    beta = np.degrees(np.arccos(np.clip(a[:, 2], -1.0, 1.0)))
+    excess = beta - max_polar_deg
+    fix = (excess > 1e-9) & (excess <= max_tilt_deg + 1e-9)
+    summary = {"n_clamped": int(fix.sum()), "max_clamp_deg": float(excess[fix].max(initial=0.0)),
+               "n_unreachable": int((excess > max_tilt_deg + 1e-9).sum())}
+    if not fix.any():
+        return tp, summary
+    phi = np.arctan2(a[fix, 1], a[fix, 0])
+    polar = np.radians(max_polar_deg)
+    axis = a.copy()
+    axis[fix] = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi), np.full(len(phi), np.cos(polar))])
+    out = Toolpaths(layer=tp.layer, path=tp.path, xyz=tp.xyz, axis=axis, thickness=tp.thickness, width=tp.width,
+                    extrude=tp.extrude, attrs=dict(tp.attrs))
+    return out, summary
