@@ -36,7 +36,7 @@ from neuralslicer.toolpath.types import Toolpaths
 #: print metrics copied into metrics.json
 PRINT_METRICS = (
     "toolpath_length_mm", "n_waypoints", "estimated_print_time_s", "material_mm3", "n_collisions",
-    "n_part_collisions", "n_platform_collisions", "n_singular", "n_rotary_out_of_range", "c_range_deg",
+    "n_part_collisions", "n_platform_collisions", "n_travel_collisions", "n_singular", "n_rotary_out_of_range", "c_range_deg",
     "n_waypoints_outside_solid",
 )
 PLANAR = np.array([0.0, 0.0, 1.0])

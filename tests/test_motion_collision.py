@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 
 from neuralslicer.motion import check_collisions, load_profile, platform_clearance
 from neuralslicer.motion.collision import PART, PLATFORM, head_collisions, head_cores, head_parts
@@ -91,3 +92,25 @@ def test_head_check_is_exact_on_random_clouds():
         assert _inside_head(ball, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
     # tighter than one ball per part: the holder balls are smaller than the holder's enclosing ball
     assert max(r for _, r in parts) < np.hypot(15.0, 15.0)
+
+
+def test_a_travel_through_a_tower_is_found_where_its_ends_are_clear():
+    from neuralslicer.motion.collision import TRAVEL_PATH
+
+    tower = [square_layer(0.5 * (i + 1), size=4.0, n=9) for i in range(10)]             # up to z = 5
+    left, right = square_layer(0.5, size=3.0, n=7, center=(-10.0, 0.0)), square_layer(0.5, size=3.0, n=7, center=(10.0, 0.0))
+    both = trimesh.Trimesh(np.vstack([left.vertices, right.vertices]),
+                           np.vstack([left.faces, right.faces + len(left.vertices)]), process=False)
+    both.vertex_attributes["lpd"] = np.tile([0.0, 0.0, 1.0], (len(both.vertices), 1))
+    tp = toolpaths(tower + [both], platform_z=0.0)
+    ends_only = check_collisions(tp, NOZZLE, platform_z=0.0, travel_spacing=0.0)
+    assert ends_only.count == 0
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    assert rep.count >= 1 and set(rep.kind) == {TRAVEL_PATH}
+    for i, loc in zip(rep.indices, rep.locations):
+        assert tp.layer[i] == 10 and not tp.extrude[i]
+        assert np.abs(loc[:2]).max() <= 2.0 + 1e-9 and loc[2] <= 5.0 + 1e-9                     # tower material
+        # brute force: some pose on the move arriving at i has that material inside the head
+        t = np.linspace(0, 1, 201)[:, None]
+        tips = (1 - t) * tp.xyz[i - 1] + t * tp.xyz[i]
+        assert any(_inside_head(loc[None], tip, tp.axis[i], NOZZLE, 0.5)[0] for tip in tips)

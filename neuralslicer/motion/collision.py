@@ -26,12 +26,13 @@ from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
 
-PART, PLATFORM = 0, 1
+PART, PLATFORM, TRAVEL_PATH = 0, 1, 2
 
 
 @dataclass
 class CollisionReport:
-    """Collisions found: waypoint indices, a colliding location each, and the kind (PART/PLATFORM)."""
+    """Collisions found: waypoint indices, a colliding location each, and the kind (PART/PLATFORM at the
+    waypoint, TRAVEL_PATH: somewhere along the non-printing move arriving at it)."""
 
     indices: IndexArray
     locations: FloatArray
@@ -58,6 +59,7 @@ class CollisionReport:
         """JSON-able counts."""
         return {"n_collisions": self.count, "n_part_collisions": int((self.kind == PART).sum()),
                 "n_platform_collisions": int((self.kind == PLATFORM).sum()),
+                "n_travel_collisions": int((self.kind == TRAVEL_PATH).sum()),
                 "first_collision_waypoints": [int(i) for i in self.indices[:20]]}
 
 
@@ -205,13 +207,35 @@ def default_min_height(tp: Toolpaths) -> float:
     return max(0.3, float(tp.width.max(initial=0.0)))
 
 
+def travel_samples(tp: Toolpaths, spacing: float) -> tuple[FloatArray, FloatArray, IndexArray]:
+    """Poses inside the non-printing moves (into a waypoint that does not extrude), every ``spacing`` mm:
+    tool tip, tool axis (interpolated) and the waypoint each move arrives at."""
+    if spacing <= 0 or len(tp) < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    seg = np.linalg.norm(np.diff(tp.xyz, axis=0), axis=1)
+    n_in = np.where(~tp.extrude[1:], np.floor(seg / spacing).astype(np.int64), 0)
+    n_in[seg <= spacing] = 0
+    if not n_in.sum():
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    i = np.repeat(np.arange(len(seg)), n_in)
+    k = np.arange(len(i)) - np.repeat(np.cumsum(n_in) - n_in, n_in) + 1
+    t = (k / (n_in[i] + 1))[:, None]
+    axis = (1 - t) * tp.axis[i] + t * tp.axis[i + 1]
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    return (1 - t) * tp.xyz[i] + t * tp.xyz[i + 1], axis, i + 1
+
+
 def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_height: float | None = None,
-                     platform_tolerance: float = 1e-6, only: IndexArray | None = None) -> CollisionReport:
-    """Waypoints where the head hits earlier layers' material or the platform (see module doc).
+                     platform_tolerance: float = 1e-6, only: IndexArray | None = None,
+                     travel_spacing: float = 2.0) -> CollisionReport:
+    """Waypoints where the head hits earlier layers' material or the platform (see module doc), and
+    non-printing moves whose inside does (poses every ``travel_spacing`` mm, 0: off; reported at the
+    waypoint the move arrives at).
 
     min_height : material closer than this to the tip along the axis is ignored (default: the
     largest line width, at least 0.3 mm), so the beads touching the nozzle are not counted;
-    only : check just these waypoints (the material is still every earlier layer's).
+    only : check just these waypoints (and the moves arriving at them; the material is still every
+    earlier layer's).
     """
     n = len(tp)
     if n == 0:
@@ -228,6 +252,10 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
     hit |= plat
     loc[plat] = np.c_[tp.xyz[plat, :2], np.full(int(plat.sum()), platform_z)]
     kind[plat] = PLATFORM
+    s_xyz, s_axis, s_to = travel_samples(tp, travel_spacing)
+    keep = wanted[s_to]
+    s_xyz, s_axis, s_to = s_xyz[keep], s_axis[keep], s_to[keep]
+    s_layer = tp.layer[s_to]
     # part: material of previous layers
     order = np.argsort(tp.layer, kind="stable")
     layers = tp.layer[order]
@@ -241,6 +269,17 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
             hit[ask[new]] = True
             loc[ask[new]] = g_loc[new]
             kind[ask[new]] = PART
+        if material.blocks and len(s_to):
+            sel = np.flatnonzero(s_layer == tp.layer[grp[0]])
+            if len(sel):
+                t_hit, t_loc = _head_hits(material, s_xyz[sel], s_axis[sel], nozzle, min_height)
+                to, where = s_to[sel][t_hit], t_loc[t_hit]
+                first = np.unique(to, return_index=True)[1]
+                to, where = to[first], where[first]
+                new = ~hit[to]
+                hit[to[new]] = True
+                loc[to[new]] = where[new]
+                kind[to[new]] = TRAVEL_PATH
         on_layer = grp[tp.path[grp] >= 0]
         material.add(tp.xyz[on_layer])
     idx = np.flatnonzero(hit)
