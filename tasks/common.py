@@ -13,6 +13,7 @@ from prefect.context import TaskRunContext
 from prefect.states import State
 
 from storage import ArtifactRef, ArtifactStore, digest
+from tasks.progress import say
 
 # bump when a step's output for the same inputs changes (a cache-busting code version per step)
 STEP_VERSIONS = {
@@ -104,8 +105,11 @@ def pipeline_task(
 
             def make() -> tuple[dict, dict]:
                 start = time.perf_counter()
+                say(f"{step}: started")
                 arrays, attrs = fn(out=out, **params)
-                return arrays, {**attrs, "step": step, "wall_s": time.perf_counter() - start, "versions": versions()}
+                wall = time.perf_counter() - start
+                say(f"{step}: done in {wall:.1f} s")
+                return arrays, {**attrs, "step": step, "wall_s": wall, "versions": versions()}
 
             ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))
             return out

@@ -1,20 +1,38 @@
-"""Progress of long steps: a rich bar on the terminal and a Prefect log line every tenth of the way."""
+"""What a run shows while it works: a rich bar on a terminal, plain lines on stderr every tenth of the way
+or every ``line_every_s`` seconds (so a run whose output goes to a file or a scheduler's log can be
+followed too), and the same lines as Prefect INFO logs."""
 from __future__ import annotations
 
+import sys
+import time
 from types import TracebackType
 from typing import Any
 
+import rich.console
 import rich.progress
 from prefect import get_run_logger
 
+#: seconds between plain progress lines (besides one per tenth of the work)
+LINE_EVERY_S = 10.0
+
+
+def say(message: str) -> None:
+    """One line on stderr (plain text when it is not a terminal) and in the Prefect run log."""
+    rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
+    try:
+        get_run_logger().info(message)
+    except Exception:  # noqa: BLE001 - outside a flow or task run there is no run logger
+        pass
+
 
 class Progress:
-    """Context manager: `update(done, total, **fields)` moves the bar and logs through Prefect."""
+    """Context manager: `update(done, total, **fields)` moves the bar and prints/logs progress lines."""
 
-    def __init__(self, description: str, total: int) -> None:
+    def __init__(self, description: str, total: int, line_every_s: float = LINE_EVERY_S) -> None:
         """A bar named `description` with `total` units of work."""
         self.description = description
         self.total = max(int(total), 1)
+        self.line_every_s = line_every_s
         self._bar = rich.progress.Progress(
             rich.progress.TextColumn("[bold]{task.description}"),
             rich.progress.BarColumn(),
@@ -22,9 +40,12 @@ class Progress:
             rich.progress.TimeElapsedColumn(),
             rich.progress.TextColumn("{task.fields[info]}"),
             transient=True,
+            console=rich.console.Console(stderr=True),
+            disable=not sys.stderr.isatty(),
         )
         self._task = self._bar.add_task(description, total=self.total, info="")
-        self._next_log = 0.1
+        self._next_fraction = 0.1
+        self._start = self._last_line = time.perf_counter()
 
     def __enter__(self) -> Progress:
         """Start the bar."""
@@ -35,12 +56,16 @@ class Progress:
         """Stop the bar."""
         self._bar.stop()
 
-    def update(self, done: int, total: int | None = None, **fields: Any) -> None:
-        """Advance to `done` of `total`; extra fields (e.g. loss terms) are shown and logged."""
+    def update(self, done: int, total: int | None = None, /, **fields: Any) -> None:
+        """Advance to `done` of `total` (positional: a field may be called total, as the total loss is); extra
+        fields (e.g. loss terms) are shown, printed and logged."""
         if total is not None:
             self.total = max(int(total), 1)
         info = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in fields.items())
         self._bar.update(self._task, completed=done, total=self.total, info=info)
-        if done / self.total >= self._next_log or done == self.total:
-            get_run_logger().info("%s: %d/%d %s", self.description, done, self.total, info)
-            self._next_log = (int(done / self.total * 10) + 1) / 10
+        now = time.perf_counter()
+        if done / self.total >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
+            rate = done / max(now - self._start, 1e-9)
+            say(f"{self.description}: {done}/{self.total} ({rate:.3g}/s, {now - self._start:.0f} s) {info}")
+            self._next_fraction = (int(done / self.total * 10) + 1) / 10
+            self._last_line = now

@@ -112,6 +112,12 @@ def test_kill_and_resume(tmp_path, small_part):
     assert not (out / "metrics.json").exists()
     rerun = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
+    # output to a pipe (not a terminal): one line as each computed step starts and ends, progress lines
+    lines = rerun.stderr.splitlines()
+    for step in ("field", "layers", "toolpaths", "export"):
+        assert f"{step}: started" in lines and any(ln.startswith(f"{step}: done in ") for ln in lines), step
+    assert not any(ln.startswith("cage: started") for ln in lines)               # cached: no work, no line
+    assert sum(ln.startswith("optimise: ") and "/60 (" in ln for ln in lines) >= 5, "\n".join(lines[-60:])
     st = states(out)
     assert [st[t] for t in ("model", "solid", "samples", "cage")] == ["Cached"] * 4
     assert st["field"] == "Completed"
