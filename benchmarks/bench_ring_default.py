@@ -28,6 +28,7 @@ def one_run(tmp: Path) -> dict:
     """One default ring slice in a fresh store: its figures."""
     env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect")}
     out = tmp / "ring"
+    load = os.getloadavg()[0]
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "cli", "slice", str(RING), "--up", "y", "--out", str(out)],
                           env=env, capture_output=True, text=True, cwd=ROOT.parent)
@@ -43,6 +44,9 @@ def one_run(tmp: Path) -> dict:
         "blend_planar": m["field.blend_planar"], "overhang": m["sf.overhang_area_fraction"],
         "overhang_planar": m["sf.overhang_area_fraction_planar"],
         "steps_s": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("wall_s.")},
+        "tilt": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("tilt.")},
+        "reach": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("reach.")},
+        "travel_collisions": m.get("n_travel_collisions"), "load_avg_1min_at_start": load,
     }
 
 
@@ -56,7 +60,8 @@ def main(runs: int = 3) -> None:
         print(f"run {i + 1}: {r['wall_s']:.0f} s, {r['steps']} steps, first print {r['first_print_collisions']} "
               f"collisions, {r['fields_printed']} field(s) printed, blend {r['blend_planar']:g}, overhang "
               f"{100 * r['overhang']:.3f} % (planar {100 * r['overhang_planar']:.2f} %), field "
-              f"{r['steps_s'].get('field', 0):.0f} s, toolpaths {r['steps_s'].get('toolpaths', 0):.0f} s")
+              f"{r['steps_s'].get('field', 0):.0f} s, toolpaths {r['steps_s'].get('toolpaths', 0):.0f} s, tilt {r['tilt']}, "
+              f"reach {r['reach']}, load {r['load_avg_1min_at_start']:.1f}")
     RESULTS.parent.mkdir(exist_ok=True)
     RESULTS.write_text(json.dumps({"runs": rows, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                                                              "platform": platform.platform()}}, indent=2))
