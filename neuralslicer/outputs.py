@@ -171,6 +171,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
     metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
+    metrics.update({f"travel.{k}": v for k, v in (run.print_metrics.get("travel_lift") or {}).items()})
     return metrics
 
 

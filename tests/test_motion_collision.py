@@ -94,15 +94,20 @@ def test_head_check_is_exact_on_random_clouds():
     assert max(r for _, r in parts) < np.hypot(15.0, 15.0)
 
 
-def test_a_travel_through_a_tower_is_found_where_its_ends_are_clear():
-    from neuralslicer.motion.collision import TRAVEL_PATH
-
+def _tower_and_two_pads():
+    """A tower up to z = 5, then one layer with two pads at x = -10 and +10 (a travel crosses the tower)."""
     tower = [square_layer(0.5 * (i + 1), size=4.0, n=9) for i in range(10)]             # up to z = 5
     left, right = square_layer(0.5, size=3.0, n=7, center=(-10.0, 0.0)), square_layer(0.5, size=3.0, n=7, center=(10.0, 0.0))
     both = trimesh.Trimesh(np.vstack([left.vertices, right.vertices]),
                            np.vstack([left.faces, right.faces + len(left.vertices)]), process=False)
     both.vertex_attributes["lpd"] = np.tile([0.0, 0.0, 1.0], (len(both.vertices), 1))
-    tp = toolpaths(tower + [both], platform_z=0.0)
+    return tower + [both]
+
+
+def test_a_travel_through_a_tower_is_found_where_its_ends_are_clear():
+    from neuralslicer.motion.collision import TRAVEL_PATH
+
+    tp = toolpaths(_tower_and_two_pads(), platform_z=0.0)
     ends_only = check_collisions(tp, NOZZLE, platform_z=0.0, travel_spacing=0.0)
     assert ends_only.count == 0
     rep = check_collisions(tp, NOZZLE, platform_z=0.0)
@@ -114,3 +119,20 @@ def test_a_travel_through_a_tower_is_found_where_its_ends_are_clear():
         t = np.linspace(0, 1, 201)[:, None]
         tips = (1 - t) * tp.xyz[i - 1] + t * tp.xyz[i]
         assert any(_inside_head(loc[None], tip, tp.axis[i], NOZZLE, 0.5)[0] for tip in tips)
+
+
+def test_a_colliding_travel_is_lifted_over_the_tower():
+    from neuralslicer.motion.travel import raise_travels
+
+    tp = toolpaths(_tower_and_two_pads(), platform_z=0.0)
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    out, left, summary = raise_travels(tp, rep, NOZZLE, platform_z=0.0, min_height=0.5)
+    assert summary["n_travels_lifted"] == rep.count and summary["n_travels_unresolved"] == 0 and left.count == 0
+    assert len(out) == len(tp) + 2 * rep.count
+    assert check_collisions(out, NOZZLE, platform_z=0.0).count == 0                       # the judge agrees
+    # the detour goes over the tower: its top (z = 5) plus the head's min height is below the lifted chord
+    lifted = out.xyz[(out.layer == 10) & (out.path == -1) & (out.xyz[:, 2] > 1.6) & (np.abs(out.xyz[:, 0]) > 7)]
+    assert len(lifted) == 2 * rep.count and lifted[:, 2].min() >= 5.0
+    # printing waypoints are untouched, in the same order
+    on = out.path >= 0
+    assert np.array_equal(out.xyz[on], tp.xyz[tp.path >= 0])

@@ -13,6 +13,7 @@ from neuralslicer.motion.collision import CollisionReport, check_collisions, def
 from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.motion.reorient import clamp_to_reach, tilt_away
+from neuralslicer.motion.travel import raise_travels
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.types import Toolpaths
@@ -40,12 +41,14 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     t1 = time.perf_counter()
     report = check_collisions(tp, profile.nozzle, platform_z)
     t2 = time.perf_counter()
+    tp, report, lifted = raise_travels(tp, report, profile.nozzle, platform_z, default_min_height(tp))
     tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg)
     tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg)
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     t4 = time.perf_counter()
     metrics = program_metrics(program)
+    metrics["travel_lift"] = lifted
     metrics["axis_tilt"] = tilt
     metrics["axis_reach"] = reach
     metrics["n_waypoints"] = len(tp)
