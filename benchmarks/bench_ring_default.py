@@ -36,6 +36,7 @@ def one_run(tmp: Path) -> dict:
     if done.returncode != 0:
         raise SystemExit(f"the ring slice failed ({done.returncode}): {done.stderr[-2000:]}")
     m = json.loads((out / "metrics.json").read_text())
+    prints = _prints(out / "store.zarr")
     stages = sorted({int(k.split(".")[1]) for k in m if k.startswith("collision_resolution.")})
     return {
         "wall_s": wall, "steps": m["field.steps"], "layers": m["n_layers"], "waypoints": m["n_waypoints"],
@@ -47,7 +48,24 @@ def one_run(tmp: Path) -> dict:
         "tilt": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("tilt.")},
         "reach": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("reach.")},
         "travel_collisions": m.get("n_travel_collisions"), "load_avg_1min_at_start": load,
+        "prints": prints,
     }
+
+
+def _prints(store: Path) -> list[dict]:
+    """Every print of the run, in the order made: collisions by kind and what the travel lift and tilt did."""
+    from storage import ArtifactStore
+
+    st = ArtifactStore(store)
+    rows = []
+    made = sorted(st.children("ring/toolpaths"), key=lambda d: (store / "ring" / "toolpaths" / d).stat().st_mtime)
+    for d in made:
+        a = st.attrs(f"ring/toolpaths/{d}")
+        pm = a["metrics"]
+        rows.append({"made_at_s": a.get("wall_s"), **{k: pm.get(k) for k in (
+            "n_collisions", "n_part_collisions", "n_platform_collisions", "n_travel_collisions", "n_waypoints",
+            "travel_lift", "axis_tilt", "axis_reach", "timings_s")}})
+    return rows
 
 
 def main(runs: int = 3) -> None:
@@ -62,6 +80,9 @@ def main(runs: int = 3) -> None:
               f"{100 * r['overhang']:.3f} % (planar {100 * r['overhang_planar']:.2f} %), field "
               f"{r['steps_s'].get('field', 0):.0f} s, toolpaths {r['steps_s'].get('toolpaths', 0):.0f} s, tilt {r['tilt']}, "
               f"reach {r['reach']}, load {r['load_avg_1min_at_start']:.1f}")
+        for pr in r["prints"]:
+            print("   print:", {k: pr[k] for k in ("n_collisions", "n_part_collisions", "n_platform_collisions",
+                                                   "n_travel_collisions", "travel_lift", "axis_tilt")})
     RESULTS.parent.mkdir(exist_ok=True)
     RESULTS.write_text(json.dumps({"runs": rows, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                                                              "platform": platform.platform()}}, indent=2))

@@ -178,8 +178,7 @@ class OptimConfig(BaseModel):
     target_overhang_late: float = Field(
         1e-2, ge=0,
         description="from step late_after on, the constraint stop accepts this overhang fraction instead (still "
-        "with no head collision and L_CA = 0). Some cages cross a saddle slowly (2,255 steps, 4 min on one ring "
-        "cage against 150-790 on others); this bounds the wait at an overhang far below planar layers' (0: off)")
+        "with no head collision and L_CA = 0): a bound on runs whose overhang creeps down slowly (0: off)")
     late_after: int = Field(500, ge=0, description="step from which target_overhang_late applies")
     check_every: int = Field(
         10, ge=1, description="steps between searches for L_GC's pairs near collision and constraint checks")
