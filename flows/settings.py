@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -59,3 +60,8 @@ def cache_settings(store: str) -> Any:
     results = result_storage_dir(store)
     results.mkdir(parents=True, exist_ok=True)
     return temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: results, PREFECT_RESULTS_PERSIST_BY_DEFAULT: True})
+
+
+def artifact_key(text: str) -> str:
+    """A Prefect artifact key or run name (lowercase letters, digits, dashes)."""
+    return re.sub(r"[^a-z0-9-]+", "-", text.lower()).strip("-")[:100] or "run"

@@ -16,6 +16,7 @@ from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
 from neuralslicer.scalar_field import smallest_clean_blend
 from neuralslicer.motion.profile import MachineProfile, load_profile
+from flows.settings import artifact_key
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
 from tasks.codec import n_collisions, store_user_field
 from tasks.common import run_step
@@ -162,7 +163,32 @@ def slice_pipeline(
     return SliceRun(name, log.states, refs, provenance_digest)
 
 
-@flow(name="neuralslicer-slice")
+def slice_run_name() -> str:
+    """Flow-run name: ``slice-<model>-<output folder>`` (Prefect's random names say nothing in the UI)."""
+    from prefect.runtime import flow_run
+
+    params = flow_run.parameters
+    spec = params.get("spec")
+    try:
+        model = model_name(spec if isinstance(spec, ModelSpec) else ModelSpec.model_validate(spec))
+    except Exception:  # noqa: BLE001 - a name must never fail a run
+        model = "model"
+    return artifact_key(f"slice-{model}-{Path(str(params.get('out_dir', 'out'))).name}")
+
+
+def publish_report(name: str, out_dir: str) -> str | None:
+    """The run's report.md as a Prefect markdown artifact (key ``slice-<model>``); the key, or None without a report."""
+    from prefect.artifacts import create_markdown_artifact
+
+    report = Path(out_dir) / "report.md"
+    if not report.is_file():
+        return None
+    key = artifact_key(f"slice-{name}")
+    create_markdown_artifact(key=key, markdown=report.read_text(), description=f"Neural Slicer report: {name} ({out_dir})")
+    return key
+
+
+@flow(name="neuralslicer-slice", flow_run_name=slice_run_name)
 def slice_flow(
     spec: ModelSpec, out_dir: str, config: SliceConfig, store: str, user_field: str | None = None
 ) -> dict[str, Any]:
@@ -170,9 +196,13 @@ def slice_flow(
 
     `user_field`: an .npz (points (p,3) in the build frame, values (p,)) for the `user` initial guess.
     """
+    from prefect.runtime import flow_run
+
     start = time.perf_counter()
     run = slice_pipeline(spec, out_dir, config, store, user_field)
     summary = {
+        "flow_run_name": flow_run.name,
+        "report_artifact": publish_report(run.name, out_dir),
         "provenance_digest": run.provenance_digest,
         "tasks": [{"task": t, "state": s} for t, s in run.states],
         "all_cached": all(s == "Cached" for _, s in run.states),

@@ -1,7 +1,6 @@
 """Study outputs: DIR/study.json, DIR/study.md with figures, and the same as Prefect table/markdown artifacts."""
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from flows.branch import Branch  # noqa: E402
+from flows.settings import artifact_key  # noqa: E402
 from neuralslicer.report import plot_learning_curves  # noqa: E402
 from storage import ArtifactStore, atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
 
@@ -107,11 +107,6 @@ def plot_cage_study(path: Path, study: dict[str, Any]) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     plt.close(fig)
-
-
-def artifact_key(text: str) -> str:
-    """A Prefect artifact key (lowercase letters, digits, dashes)."""
-    return re.sub(r"[^a-z0-9-]+", "-", text.lower()).strip("-")[:100] or "study"
 
 
 def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Branch]) -> None:

@@ -61,6 +61,15 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
     assert np.all(np.diff(z) > 0)
     model = trimesh.load(out / "model.ply")
     assert model.is_watertight and model.volume == pytest.approx(1760.0, rel=1e-6)
+    # the flow run is named after the model and the output folder, and publishes the report
+    run = json.loads((out / "run.json").read_text())
+    assert run["flow_run_name"] == "slice-lpart-run" and run["report_artifact"] == "slice-lpart"
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["slice-lpart"])))
+    assert arts and "Neural Slicer report" in str(arts[0].data)
 
     assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
     assert set(states(out).values()) == {"Cached"}
