@@ -144,6 +144,14 @@ class _TreeSet:
         self.blocks.append((pts, cKDTree(pts)))
 
 
+def earlier_material(tp: Toolpaths, layer: int) -> _TreeSet:
+    """The material the head can meet while printing ``layer``: every earlier layer's printing waypoints."""
+    first = int(np.flatnonzero(tp.layer == layer)[0])
+    material = _TreeSet()
+    material.add(tp.xyz[:first][tp.path[:first] >= 0])
+    return material
+
+
 def _open_queries(material: _TreeSet, hit: BoolArray, xyz: FloatArray, axis: FloatArray,
                   balls: list[tuple[float, float]]) -> Iterator[tuple[FloatArray, cKDTree, FloatArray, float, IndexArray]]:
     """(points, tree, ball centres, radius, poses not yet hit) for each ball of the head and each tree."""

@@ -12,11 +12,11 @@ check stays the judge: the caller checks the tilted program again.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from neuralslicer.motion.collision import CollisionReport, _head_hits, _TreeSet, platform_clearance
+from neuralslicer.motion.collision import CollisionReport, _head_hits, _TreeSet, earlier_material, platform_clearance
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
@@ -121,9 +121,7 @@ def tilt_away(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z
     weight = np.zeros(len(tp))
     fixed, unfixed, tilt_deg = [], [], []
     for layer in np.unique(tp.layer[idx]):
-        first = int(np.flatnonzero(tp.layer == layer)[0])
-        material = _TreeSet()
-        material.add(tp.xyz[:first][tp.path[:first] >= 0])
+        material = earlier_material(tp, int(layer))
         for run in _runs(tp, idx[tp.layer[idx] == layer], arc, 2.0 * ramp_mm):
             hit_at = np.array([where_hit[int(i)] for i in run])
             rot, tilt = _run_rotation(tp, run, hit_at, material, nozzle, platform_z, min_height, tilts, n_azimuth)
@@ -146,8 +144,7 @@ def tilt_away(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z
     changed = np.flatnonzero(weight > 0)
     axis = tp.axis.copy()
     axis[changed] = _rotate(tp.axis[changed], rotvec[changed])
-    out = Toolpaths(layer=tp.layer, path=tp.path, xyz=tp.xyz, axis=axis, thickness=tp.thickness, width=tp.width,
-                    extrude=tp.extrude, attrs=dict(tp.attrs))
+    out = replace(tp, axis=axis, attrs=dict(tp.attrs))
     return out, Reorientation(np.asarray(fixed, np.int64), np.asarray(unfixed, np.int64), changed,
                               np.asarray(tilt_deg, np.float64))
 
@@ -168,6 +165,4 @@ def clamp_to_reach(tp: Toolpaths, max_polar_deg: float, max_tilt_deg: float) -> 
     polar = np.radians(max_polar_deg)
     axis = a.copy()
     axis[fix] = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi), np.full(len(phi), np.cos(polar))])
-    out = Toolpaths(layer=tp.layer, path=tp.path, xyz=tp.xyz, axis=axis, thickness=tp.thickness, width=tp.width,
-                    extrude=tp.extrude, attrs=dict(tp.attrs))
-    return out, summary
+    return replace(tp, axis=axis, attrs=dict(tp.attrs)), summary

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport, _head_hits, _TreeSet, platform_clearance
+from neuralslicer.motion.collision import (TRAVEL_PATH, CollisionReport, _head_hits, _TreeSet, earlier_material,
+                                           platform_clearance)
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray
@@ -52,9 +53,7 @@ def raise_travels(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platfo
         return tp, report, summary
     detours: dict[int, tuple[FloatArray, FloatArray]] = {}
     for layer in np.unique(tp.layer[report.indices[travel]]):
-        first = int(np.flatnonzero(tp.layer == layer)[0])
-        material = _TreeSet()
-        material.add(tp.xyz[:first][tp.path[:first] >= 0])
+        material = earlier_material(tp, int(layer))
         for j in report.indices[travel][tp.layer[report.indices[travel]] == layer]:
             i = int(j) - 1
             p, q, a, b = tp.xyz[i], tp.xyz[j], tp.axis[i], tp.axis[j]
