@@ -211,3 +211,17 @@ def test_program_starts_and_ends_clear_of_the_part(curved):
     assert prog.machine[-1, 3] == 0.0 and prog.machine[-1, 4] % 360.0 == pytest.approx(0.0, abs=1e-9)
     assert np.allclose(prog.machine[-1, :2], [100.0, 50.0])
     assert np.abs(np.diff(prog.machine[:, 3:5], axis=0)).max() <= kin.max_rotary_step_deg + 1e-9
+
+
+def test_safe_end_adds_no_move_where_the_program_already_ends_there(curved):
+    from neuralslicer.motion.planning import _with_safe_start_end, safe_height
+
+    tp, _, _ = curved
+    profile = load_profile("table_bc_linuxcnc").model_copy(deep=True)
+    profile.gcode.safe_start_end = False
+    prog = plan_motion(tp, profile, platform_z=0.0)
+    prog.machine[-1] = [prog.machine[-1, 0], prog.machine[-1, 1], safe_height(prog), 0.0, 0.0]   # already home, up
+    out = _with_safe_start_end(prog)
+    n_start = int(np.argmax(out.source >= 0)) - 2          # start moves before the approach and the prime
+    assert len(out) == len(prog) + n_start + 2             # + prime + retract, no end moves
+    assert len(out.time_s) == len(out.machine) == len(out.kind) == len(out.layer)

@@ -88,11 +88,12 @@ def _machine_comment(program: MachineProgram) -> list[str]:
     v = lambda t: " ".join(f"{x:.4f}" for x in t)  # noqa: E731
     c_span = ("unlimited" if k.c_min_deg is None and k.c_max_deg is None
               else f"{k.c_min_deg if k.c_min_deg is not None else '-inf'}..{k.c_max_deg if k.c_max_deg is not None else 'inf'}")
+    b_lo, b_hi = program.attrs.get("b_range_deg", (0.0, 0.0))
+    c_lo, c_hi = program.attrs.get("c_range_deg", (0.0, 0.0))
     return [f"machine: {program.profile.name}, table B/C, tool tip at the pivot = machine {v(k.pivot)} mm",
             f"machine: C axis on the table at pivot + {v(k.c_offset)} mm at B = 0; B range {k.b_min_deg:g}..{k.b_max_deg:g} deg, "
             f"C range {c_span} deg",
-            f"machine: program B {program.attrs.get('b_range_deg', [0, 0])[0]:.2f}..{program.attrs.get('b_range_deg', [0, 0])[1]:.2f} deg, "
-            f"C {program.attrs.get('c_range_deg', [0, 0])[0]:.2f}..{program.attrs.get('c_range_deg', [0, 0])[1]:.2f} deg"]
+            f"machine: program B {b_lo:.2f}..{b_hi:.2f} deg, C {c_lo:.2f}..{c_hi:.2f} deg"]
 
 
 def _summary_comment(program: MachineProgram, open_c: str, close_c: str) -> list[str]:

@@ -203,7 +203,7 @@ def _with_safe_start_end(program: MachineProgram) -> MachineProgram:
     t_prog = program.time_s.copy()
     t_prog[0] = travel_t[n_s]                      # the approach now comes from the safe height
     time_s = np.r_[travel_t[:n_s], t_prog[:1], ex.prime_mm / f.retract_mm_s, t_prog[1:], ex.retract_mm / f.retract_mm_s,
-                   travel_t[-n_e:]]
+                   travel_t[len(travel_t) - n_e:]]
     time_s[0] = 0.0
     layer = np.r_[np.full(n_s + 2, program.layer[0]), program.layer[1:], np.full(n_e + 1, program.layer[-1])]
     source = np.r_[np.full(n_s, -1), program.source[:1], -1, program.source[1:], -1, np.full(n_e, -1)]

@@ -31,12 +31,6 @@ class Reorientation:
     changed: IndexArray
     tilt_deg: FloatArray
 
-    def summary(self) -> dict:
-        """JSON-able counts for metrics.json."""
-        return {"n_tilted_collisions": int(len(self.fixed)), "n_untiltable_collisions": int(len(self.unfixed)),
-                "n_waypoints_tilted": int(len(self.changed)),
-                "max_tilt_deg": float(self.tilt_deg.max(initial=0.0))}
-
 
 def _rotate(vectors: FloatArray, rotvec: FloatArray) -> FloatArray:
     """Rotate unit vectors (n,3) by rotation vectors (n,3) (axis times angle in radians; Rodrigues)."""
