@@ -85,6 +85,19 @@ class Nozzle(_Model):
     cone_length: float = Field(8.0, gt=0)
     holder_radius: float = Field(15.0, gt=0)
     holder_length: float = Field(30.0, ge=0)
+    #: bead thickness the nozzle lays with controlled flow (mm): thinner beads are not extruded (their
+    #: material goes to the next layer's bead above them), thicker ones get this much at most.
+    bead_thickness_mm: tuple[float, float] = (0.15, 1.2)
+    #: bead width the nozzle lays (mm); the toolpaths' line width must lie in it.
+    bead_width_mm: tuple[float, float] = (0.3, 1.0)
+
+    @model_validator(mode="after")
+    def _check_beads(self) -> "Nozzle":
+        for name in ("bead_thickness_mm", "bead_width_mm"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo < hi:
+                raise ValueError(f"{name}: need 0 < min < max, got [{lo}, {hi}]")
+        return self
 
 
 class GcodeOptions(_Model):
