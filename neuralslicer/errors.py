@@ -15,3 +15,7 @@ class InputError(NeuralSlicerError):
         self.where = str(where)
         self.message = message
         super().__init__(f"{self.where}: {message}")
+
+
+class PlanError(NeuralSlicerError):
+    """A print the machine cannot execute as planned (a pose beyond its axis limits): says where and why."""

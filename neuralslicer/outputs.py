@@ -26,8 +26,9 @@ from neuralslicer.gcode.writers import write_gcode
 from neuralslicer.layers import Layers
 from neuralslicer.metrics import overhang_area_fraction, strength_angles, strength_satisfaction, support_angles
 from neuralslicer.motion.planning import MachineProgram
-from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layers,
-                                 plot_learning_curves, plot_strain_histogram)
+from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
+                                 plot_layers_3d, plot_learning_curves, plot_overhang_map, plot_strain_histogram,
+                                 plot_thickness_map)
 from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
@@ -172,6 +173,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
     metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
     metrics.update({f"travel.{k}": v for k, v in (run.print_metrics.get("travel_lift") or {}).items()})
+    metrics.update({f"beads.{k}": v for k, v in (run.print_metrics.get("beads") or {}).items() if not k.startswith("hist_")})
     return metrics
 
 
@@ -180,8 +182,11 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
     B, keep, lpd = run.samples, ~run.samples.on_platform, run.lpd_b
     planar = np.tile(PLANAR, (len(B.points), 1))
     figures = {}
-    plot_layers(figs / "layers.png", run.layers.meshes)
-    figures["Layers"] = "figures/layers.png"
+    renderer = plot_layers_3d(figs / "layers.png", run.layers.meshes)
+    figures[f"Layers ({renderer})"] = "figures/layers.png"
+    plot_overhang_map(figs / "overhang_map.png", B.points, B.normals, {"planar": planar, "computed": lpd}, alpha_deg,
+                      B.areas, B.on_platform)
+    figures["Overhang map (planar vs computed)"] = "figures/overhang_map.png"
     plot_angle_histogram(
         figs / "sf_histogram.png",
         {"planar": support_angles(B.normals[keep], planar[keep]), "computed": support_angles(B.normals[keep], lpd[keep])},
@@ -207,6 +212,12 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
         figures["Learning curves"] = "figures/learning_curves.png"
     plot_toolpaths_png(figs / "toolpaths.png", run.toolpaths)
     figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
+    tp = run.toolpaths
+    plot_layer_toolpaths(figs / "layer_toolpaths.png", tp)
+    figures["Toolpaths of representative layers"] = "figures/layer_toolpaths.png"
+    plot_thickness_map(figs / "bead_thickness.png", tp.xyz, tp.thickness, tp.extrude,
+                       run.program.profile.nozzle.bead_thickness_mm)
+    figures["Bead thickness"] = "figures/bead_thickness.png"
     plot_collision_map(figs / "collisions.png", run.collision_maps)
     figures["Print head collisions (red)"] = "figures/collisions.png"
     return figures
@@ -236,6 +247,21 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
             f"from the LPD by at most {metrics['tilt.max_tilt_deg']:g}° (ramped along the path, "
             f"{metrics['tilt.n_waypoints_tilted']:,} waypoints turned) cleared {metrics['tilt.n_collisions_cleared']:,} "
             f"of them; {metrics['collisions']:,} remain. The layers are the field's own.")
+    beads = run.print_metrics.get("beads")
+    if beads:
+        lo, hi = beads["thickness_range_mm"]
+        sections["Beads"] = (
+            f"{100 * beads['fraction_outside_range']:.2f} % of the {beads['n_extruding']:,} printing waypoints have a gap to "
+            f"the layer below outside the nozzle's bead range [{lo:g}, {hi:g}] mm ({100 * beads['fraction_thin']:.2f} % "
+            f"thinner, {100 * beads['fraction_thick']:.2f} % thicker). {beads['n_skipped']:,} thin beads were not extruded and "
+            f"their gap went to the bead above ({beads['n_carried']:,} beads carry one); {beads['n_capped']:,} thick gaps "
+            "were printed at the largest bead.")
+    reach = run.print_metrics.get("axis_reach") or {}
+    if reach.get("n_clamped"):
+        sections["Tool axes turned into the machine's reach"] = (
+            f"{reach['n_clamped']:,} waypoints needed a tool axis beyond the machine's B range; it was turned back onto "
+            f"the limit (largest turn {reach['max_clamp_deg']:.1f}°, {reach.get('n_beyond_tilt_bound', 0):,} by more than "
+            "the collision tilt bound), so the bead there leaves the field's print direction by that angle.")
     write_json_atomic(d / "metrics.json", metrics)
     write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {run.model}", metrics, figures, sections))
     return json.loads(json.dumps(metrics, default=float))
@@ -254,8 +280,8 @@ def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProg
         files["png"] = plot_toolpaths_png(out / "toolpaths.png", tp)
     if robot:
         d = program.profile.extrusion.filament_diameter
-        files["robot_csv"] = write_robot_csv(out / "robot_waypoints.csv", tp, d)
-        files["robot_json"] = write_robot_json(out / "robot_waypoints.json", tp, d)
+        files["robot_csv"] = write_robot_csv(out / "robot_waypoints.csv", tp, d, profile=program.profile)
+        files["robot_json"] = write_robot_json(out / "robot_waypoints.json", tp, d, profile=program.profile)
     if metrics is not None:
         p = out / "print_metrics.json"
         write_text_atomic(p, json.dumps(metrics, indent=2, default=float))

@@ -1,8 +1,14 @@
-"""Pictures and the Markdown report of a slice: layer preview, angle histograms, learning curves."""
+"""Pictures and the Markdown report of a slice: layer preview, angle histograms, learning curves, and the
+operator's pictures (overhang map, bead thickness, toolpaths of representative layers)."""
 from __future__ import annotations
 
+import ctypes
+import os
+import threading
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -10,9 +16,18 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+from matplotlib.colors import TwoSlopeNorm  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from neuralslicer.fileio import atomic_path  # noqa: E402
+from neuralslicer.metrics import overhang_area_fraction, support_angles  # noqa: E402
+from neuralslicer.toolpath.types import Toolpaths  # noqa: E402
+
+
+#: one off-screen VTK render at a time in this process
+_RENDER_LOCK = threading.Lock()
 
 
 def _save(fig: plt.Figure, path: Path) -> None:
@@ -139,3 +154,308 @@ def markdown_report(title: str, metrics: dict, figures: dict[str, str], sections
     for caption, rel in figures.items():
         lines += ["", f"## {caption}", "", f"![{caption}]({rel})"]
     return "\n".join(lines) + "\n"
+
+
+def _subsample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
+    """At most ``max_points`` sorted indices into ``range(n)``, drawn without replacement (all when few)."""
+    if n <= max_points:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
+def _equal_3d(ax: plt.Axes, xyz: np.ndarray) -> None:
+    """Equal, cube-shaped limits around points (n, 3) on a 3D axis."""
+    lo, hi = (xyz.min(axis=0), xyz.max(axis=0)) if len(xyz) else (np.zeros(3), np.ones(3))
+    centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6)
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+
+
+def plot_overhang_map(path: Path, points: np.ndarray, normals: np.ndarray, lpd_by_label: dict[str, np.ndarray],
+                      alpha_deg: float, areas: np.ndarray | None = None, on_platform: np.ndarray | None = None,
+                      max_points: int = 25_000) -> dict[str, float]:
+    """Surface samples coloured by overhang angle asin(-n·d), one column per field, seen from above and below.
+
+    points, normals : (n, 3) float, the samples B and their outward unit normals
+    lpd_by_label : {label: (n, 3) float unit print direction d at the samples}, e.g. planar and computed
+    areas : (n,) float sample areas weighting the overhang fraction (equal weights when None)
+    on_platform : (n,) bool samples on the platform, left out of the picture and of the fraction
+    Returns {label: overhang area fraction}, as :func:`neuralslicer.metrics.overhang_area_fraction` counts it
+    and as the titles show.
+    """
+    n = len(points)
+    areas = np.ones(n) if areas is None else np.asarray(areas, float)
+    on_platform = np.zeros(n, bool) if on_platform is None else np.asarray(on_platform, bool)
+    fractions = {label: overhang_area_fraction(normals, areas, on_platform, d, alpha_deg)
+                 for label, d in lpd_by_label.items()}
+    shown = np.flatnonzero(~on_platform)
+    shown = shown[_subsample(len(shown), max_points)]
+    norm = TwoSlopeNorm(vcenter=alpha_deg, vmin=-90.0, vmax=90.0)
+    cols = max(len(lpd_by_label), 1)
+    fig = plt.figure(figsize=(5.0 * cols, 9.0))
+    scatter = None
+    for k, (label, d) in enumerate(lpd_by_label.items()):
+        angle = support_angles(normals[shown], d[shown])
+        ok = np.isfinite(angle)
+        for row, (elev, azim, view) in enumerate([(25, -60, "from above"), (-30, -60, "from below")]):
+            ax = fig.add_subplot(2, cols, row * cols + k + 1, projection="3d")
+            scatter = ax.scatter(*points[shown[ok]].T, c=angle[ok], cmap="coolwarm", norm=norm, s=1.5,
+                                 linewidths=0, depthshade=False)
+            _equal_3d(ax, points[shown])
+            ax.view_init(elev=elev, azim=azim)
+            if row == 1:
+                ax.set_axis_off()  # the same scale as above; ticks seen from below only clutter
+            ax.set_title(f"{label}: {100 * fractions[label]:.2f} % overhang area\n({view})" if row == 0
+                         else f"{label} ({view})", fontsize=10)
+    if scatter is not None:
+        bar = fig.colorbar(scatter, ax=fig.axes, shrink=0.5, extend="neither")
+        bar.set_label(f"overhang angle asin(-n·d) (°), red beyond α = {alpha_deg:g}°")
+    fig.suptitle("overhang map of the model surface (platform samples left out)")
+    _save(fig, path)
+    return fractions
+
+
+def plot_thickness_map(path: Path, xyz: np.ndarray, thickness: np.ndarray, extrude: np.ndarray,
+                       bead_range: tuple[float, float], max_points: int = 40_000) -> dict[str, float]:
+    """Extruding waypoints coloured by bead thickness (3D) beside a histogram with the nozzle's bead range.
+
+    xyz : (n, 3) float waypoints; thickness : (n,) float local layer thickness (mm); extrude : (n,) bool
+    bead_range : (min, max) bead thickness the nozzle can lay (mm)
+    Returns the fractions of extruding waypoints below, above and outside the range, and their count.
+    """
+    lo, hi = float(bead_range[0]), float(bead_range[1])
+    idx = np.flatnonzero(np.asarray(extrude, bool) & np.isfinite(thickness))
+    t = thickness[idx]
+    m = max(len(t), 1)
+    stats = {"n": int(len(t)), "below": float(np.sum(t < lo) / m), "above": float(np.sum(t > hi) / m)}
+    stats["outside"] = stats["below"] + stats["above"]
+    fig = plt.figure(figsize=(13, 5.5))
+    ax = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)
+    shown = idx[_subsample(len(idx), max_points)]
+    cmap = plt.get_cmap("viridis").with_extremes(under="magenta", over="red")
+    out = (thickness[shown] < lo) | (thickness[shown] > hi)
+    sc = None
+    for part, size in ((shown[~out], 0.8), (shown[out], 3.0)):  # beads outside the range drawn on top
+        sc = ax.scatter(*xyz[part].T, c=thickness[part], cmap=cmap, vmin=lo, vmax=hi, s=size, linewidths=0,
+                        depthshade=False)
+    _equal_3d(ax, xyz[shown])
+    ax.view_init(elev=20, azim=-60)
+    fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, extend="both",
+                 label="bead thickness (mm); magenta below, red above range")
+    ax.set_title(f"{len(shown):,} of {len(idx):,} extruding waypoints", fontsize=10)
+    hx = fig.add_subplot(1, 2, 2)
+    if len(t):
+        top = max(float(t.max()), hi) * 1.05
+        hx.hist(t, bins=np.linspace(min(float(t.min()), lo, 0.0), top, 81), color="tab:gray")
+    hx.axvline(lo, color="magenta", linestyle="--", label=f"bead min {lo:g} mm")
+    hx.axvline(hi, color="red", linestyle="--", label=f"bead max {hi:g} mm")
+    hx.set_xlabel("bead thickness (mm)")
+    hx.set_yscale("log")
+    hx.set_ylabel("extruding waypoints (log)")
+    hx.legend()
+    hx.set_title(f"{100 * stats['outside']:.2f} % outside the bead range "
+                 f"({100 * stats['below']:.2f} % thinner, {100 * stats['above']:.2f} % thicker)", fontsize=10)
+    _save(fig, path)
+    return stats
+
+
+def representative_layers(layer: np.ndarray, path_id: np.ndarray, count: int = 4) -> list[int]:
+    """Up to ``count`` layer indices with printing waypoints: the first, evenly spaced ones, the last."""
+    printed = np.unique(layer[path_id >= 0])
+    if len(printed) == 0:
+        return []
+    picks = np.round(np.linspace(0, len(printed) - 1, min(count, len(printed)))).astype(int)
+    return [int(v) for v in printed[np.unique(picks)]]
+
+
+def _layer_frame(axis: np.ndarray) -> np.ndarray:
+    """Rows (u, v, a): an orthonormal frame whose third row is the mean of unit tool axes (n, 3)."""
+    a = axis.mean(axis=0) if len(axis) else np.array([0.0, 0.0, 1.0])
+    a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-9 else np.array([0.0, 0.0, 1.0])
+    e = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = e - (e @ a) * a
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(a, u), a])
+
+
+def _layer_segments(xyz2: np.ndarray, path_id: np.ndarray, extrude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Printing and travel segments (k, 2, 2) of one layer's consecutive waypoints (projected (n, 2))."""
+    if len(xyz2) < 2:
+        return np.zeros((0, 2, 2)), np.zeros((0, 2, 2))
+    segs = np.stack([xyz2[:-1], xyz2[1:]], axis=1)
+    printing = extrude[1:] & (path_id[1:] == path_id[:-1]) & (path_id[1:] >= 0)
+    return segs[printing], segs[~printing]
+
+
+def plot_layer_toolpaths(path: Path, tp: Toolpaths, layers_to_show: list[int] | None = None,
+                         max_segments: int = 40_000) -> list[int]:
+    """Toolpaths of a few layers, each projected on the plane orthogonal to its mean tool axis.
+
+    Printing moves are lines coloured by their order in the layer, travels dashed grey, the start a
+    black dot; ``layers_to_show`` defaults to the first, 1/3, 2/3 and last printed layers. Returns the
+    layers drawn.
+    """
+    shown = representative_layers(tp.layer, tp.path) if layers_to_show is None else list(layers_to_show)
+    cols = max(len(shown), 1)
+    fig, axes = plt.subplots(1, cols, figsize=(4.6 * cols, 4.9), squeeze=False)
+    for ax, li in zip(axes[0], shown):
+        idx = np.flatnonzero(tp.layer == li)
+        idx = idx[:: int(np.ceil(len(idx) / max_segments))] if len(idx) > max_segments else idx
+        frame = _layer_frame(tp.axis[idx[tp.path[idx] >= 0]])
+        uv = tp.xyz[idx] @ frame[:2].T
+        printing, travel = _layer_segments(uv, tp.path[idx], tp.extrude[idx])
+        if len(travel):
+            ax.add_collection(LineCollection(travel, colors="0.6", linestyles="--", linewidths=0.6))
+        if len(printing):
+            lines = LineCollection(printing, cmap="viridis", linewidths=0.8)
+            lines.set_array(np.linspace(0.0, 1.0, len(printing)))
+            ax.add_collection(lines)
+        if len(uv):
+            ax.plot(*uv[0], "ko", markersize=4)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.autoscale_view()
+        a = frame[2]
+        n_paths = len(np.unique(tp.path[idx][tp.path[idx] >= 0]))
+        ax.set_title(f"layer {li}: {n_paths} paths, {len(idx):,} waypoints\n"
+                     f"seen along tool axis ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f})", fontsize=9)
+        ax.set_xlabel("u (mm)")
+        ax.set_ylabel("v (mm)")
+        ax.xaxis.set_major_locator(MaxNLocator(5))
+        ax.tick_params(labelsize=8)
+    for ax in axes[0][len(shown):]:
+        ax.set_axis_off()
+    fig.suptitle("toolpaths of representative layers (colour = order in the layer, dashed = travel, dot = start)",
+                 y=1.04)
+    _save(fig, path)
+    return shown
+
+
+#: VTK render window classes by off-screen backend
+_VTK_WINDOWS = {"egl": "vtkEGLRenderWindow", "osmesa": "vtkOSOpenGLRenderWindow"}
+
+
+def offscreen_backend() -> str | None:
+    """How VTK can render off-screen here: ``"x"`` (a display), ``"egl"``, ``"osmesa"``, or None.
+
+    VTK falls back from X to EGL to OSMesa and crashes when none loads, so the libraries are checked
+    (dlopen, no subprocess) before any window is made; ``NEURALSLICER_RENDERER=matplotlib`` turns pyvista off.
+    """
+    if os.environ.get("NEURALSLICER_RENDERER", "").lower() == "matplotlib":
+        return None
+    if os.environ.get("DISPLAY"):
+        return "x"
+    if _loadable("libEGL.so.1") and any(_loadable(v) for v in ("libEGL_mesa.so.0", "libEGL_nvidia.so.0")):
+        return "egl"
+    if any(_loadable(v) for v in ("libOSMesa.so.8", "libOSMesa.so.6", "libOSMesa.so")):
+        return "osmesa"
+    return None
+
+
+def offscreen_rendering_available() -> bool:
+    """Whether pyvista can render off-screen here (see :func:`offscreen_backend`)."""
+    return offscreen_backend() is not None
+
+
+def _loadable(name: str) -> bool:
+    """Whether a shared library loads (dlopen, no subprocess)."""
+    try:
+        ctypes.CDLL(name)
+    except OSError:
+        return False
+    return True
+
+
+def _coarsened(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """A layer's vertices (v, 3) and faces (f, 3), vertex-clustered (VTK quadric clustering, linear time)
+    to roughly ``max_faces`` faces when it has more."""
+    if len(faces) <= max_faces:
+        return vertices, faces
+    import pyvista as pv
+    from vtkmodules.vtkFiltersCore import vtkQuadricClustering
+
+    clustering = vtkQuadricClustering()
+    clustering.SetInputData(pv.PolyData.from_regular_faces(vertices, faces))
+    divisions = int(np.clip(np.sqrt(max_faces), 8, 512))
+    clustering.SetNumberOfDivisions(divisions, divisions, divisions)
+    clustering.Update()
+    out = pv.wrap(clustering.GetOutput())
+    return (np.asarray(out.points, float), np.asarray(out.regular_faces, np.int64)) if out.n_cells else (vertices, faces)
+
+
+def _merged_layers(layers: Sequence[trimesh.Trimesh], chosen: list[int], max_faces: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (v, 3), faces (f, 3) and per-face layer index (f,) of the chosen layers as one mesh, each
+    layer coarsened to its share of ``max_faces``."""
+    share = max(max_faces // max(len(chosen), 1), 500)
+    meshes = [_coarsened(np.asarray(layers[i].vertices, float), np.asarray(layers[i].faces, np.int64), share)
+              for i in chosen]
+    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])[:-1]
+    vertices = np.concatenate([v for v, _ in meshes])
+    faces = np.concatenate([f + o for (_, f), o in zip(meshes, offsets)])
+    order = np.concatenate([np.full(len(f), i) for i, (_, f) in zip(chosen, meshes)])
+    return vertices, faces, order
+
+
+def _plot_layers_pyvista(path: Path, layers: Sequence[trimesh.Trimesh], max_layers: int, max_faces: int) -> None:
+    """Layer preview rendered off-screen with pyvista: every few layers coloured by print order, seen whole
+    and cut in half through the centre (the cut shows the layers' curves inside the part)."""
+    import pyvista as pv
+
+    n = len(layers)
+    faces_per_layer = np.array([len(m.faces) for m in layers])
+    stride = max(1, int(np.ceil(n / max_layers)), min(int(np.ceil(faces_per_layer.sum() / max_faces)), n // 24))
+    chosen = [i for i in range(0, n, stride) if faces_per_layer[i]]
+    vertices, faces, order = _merged_layers(layers, chosen, max_faces)
+    mesh = pv.PolyData.from_regular_faces(vertices, faces)
+    mesh.cell_data["print order (layer)"] = order
+    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    views = [(mesh, f"{n} layers (every {stride}), colour = print order"),
+             (mesh.clip(normal="y", origin=centre), "the half y < centre, seen from +y onto the cut")]
+    with _RENDER_LOCK:  # VTK render windows are not safe to use from several threads at once
+        _render_views(path, views, n)
+
+
+def _render_views(path: Path, views: list[tuple[Any, str]], n_layers: int) -> None:
+    """Render (pyvista mesh with cell data "print order (layer)", text) views side by side off-screen and save
+    the screenshot atomically."""
+    import pyvista as pv
+
+    backend = offscreen_backend()
+    if backend in _VTK_WINDOWS:  # straight to the backend found, without VTK's failing try of X first
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", _VTK_WINDOWS[backend])
+    plotter = pv.Plotter(off_screen=True, window_size=(1400, 700), shape=(1, 2), border=False)
+    try:
+        for k, (shown, text) in enumerate(views):
+            plotter.subplot(0, k)
+            if shown.n_cells:
+                plotter.add_mesh(shown, scalars="print order (layer)", cmap="viridis", clim=(0, max(n_layers - 1, 1)),
+                                 show_scalar_bar=k == 1, ambient=0.3)
+            plotter.add_text(text, font_size=10)
+            if k == 0:
+                plotter.view_isometric()
+            else:
+                plotter.view_vector((0.25, 1.0, 0.25), viewup=(0.0, 0.0, 1.0))
+        with atomic_path(path) as tmp:
+            img = plotter.screenshot(tmp, return_img=True)
+            if img is None or float(np.std(img)) < 1.0:
+                raise RuntimeError("pyvista rendered a blank image")
+    finally:
+        plotter.close()
+
+
+def plot_layers_3d(path: Path, layers: Sequence[trimesh.Trimesh], max_layers: int = 120,
+                   max_faces: int = 500_000) -> str:
+    """Layer preview with pyvista off-screen when it renders here, else :func:`plot_layers` (matplotlib);
+    returns the renderer used, ``"pyvista"`` or ``"matplotlib"``."""
+    if len(layers) and sum(len(m.faces) for m in layers) and offscreen_rendering_available():
+        try:
+            _plot_layers_pyvista(path, layers, max_layers, max_faces)
+            return "pyvista"
+        except Exception as exc:  # noqa: BLE001 - any renderer failure falls back to matplotlib
+            warnings.warn(f"pyvista layer preview failed ({exc}); drawing it with matplotlib", stacklevel=2)
+    plot_layers(path, layers)
+    return "matplotlib"

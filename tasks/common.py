@@ -26,7 +26,7 @@ STEP_VERSIONS = {
     "field": "2",
     "field_blend": "1",
     "layers": "5",
-    "toolpaths": "5",
+    "toolpaths": "6",
     "verify": "1",
     "export": "3",
 }

@@ -7,10 +7,13 @@ import sys
 import time
 from types import TracebackType
 from typing import Any
+from uuid import UUID
 
 import rich.console
 import rich.progress
 from prefect import get_run_logger
+from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.context import FlowRunContext, TaskRunContext
 
 #: seconds between plain progress lines (besides one per tenth of the work)
 LINE_EVERY_S = 10.0
@@ -46,15 +49,32 @@ class Progress:
         self._task = self._bar.add_task(description, total=self.total, info="")
         self._next_fraction = 0.1
         self._start = self._last_line = time.perf_counter()
+        self._artifact: UUID | None = None
 
     def __enter__(self) -> Progress:
-        """Start the bar."""
+        """Start the bar (and a Prefect progress artifact inside a flow or task run)."""
         self._bar.start()
+        if FlowRunContext.get() is None and TaskRunContext.get() is None:
+            return self                            # no run to attach an artifact to
+        try:
+            self._artifact = create_progress_artifact(0.0, description=f"{self.description}: starting")
+        except Exception:  # noqa: BLE001 - outside a flow or task run, or no API: the bar and lines suffice
+            self._artifact = None
         return self
 
     def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
-        """Stop the bar."""
+        """Stop the bar; the progress artifact says the step ended."""
         self._bar.stop()
+        self._publish(100.0, f"{self.description}: done in {time.perf_counter() - self._start:.0f} s")
+
+    def _publish(self, percent: float, line: str) -> None:
+        """Move the Prefect progress artifact (when there is one) to ``percent`` with ``line`` as its text."""
+        if self._artifact is None:
+            return
+        try:
+            update_progress_artifact(self._artifact, min(max(percent, 0.0), 100.0), description=line)
+        except Exception:  # noqa: BLE001 - a lost API connection must not stop the work
+            self._artifact = None
 
     def update(self, done: int, total: int | None = None, /, **fields: Any) -> None:
         """Advance to `done` of `total` (positional: a field may be called total, as the total loss is); extra
@@ -66,6 +86,9 @@ class Progress:
         now = time.perf_counter()
         if done / self.total >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
             rate = done / max(now - self._start, 1e-9)
-            say(f"{self.description}: {done}/{self.total} ({rate:.3g}/s, {now - self._start:.0f} s) {info}")
+            left = f", at most {(self.total - done) / rate:.0f} s left" if 0 < done < self.total else ""
+            line = f"{self.description}: {done}/{self.total} ({rate:.3g}/s, {now - self._start:.0f} s{left}) {info}"
+            say(line)
+            self._publish(100.0 * done / self.total, line)
             self._next_fraction = (int(done / self.total * 10) + 1) / 10
             self._last_line = now

@@ -65,11 +65,14 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
     run = json.loads((out / "run.json").read_text())
     assert run["flow_run_name"] == "slice-lpart-run" and run["report_artifact"] == "slice-lpart"
     from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey, ArtifactFilterType
 
     with get_client(sync_client=True) as client:
         arts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["slice-lpart"])))
     assert arts and "Neural Slicer report" in str(arts[0].data)
+    with get_client(sync_client=True) as client:   # and a progress artifact per step with a bar, ended at 100 %
+        bars = client.read_artifacts(artifact_filter=ArtifactFilter(type=ArtifactFilterType(any_=["progress"])))
+    assert any(a.data == 100 and "layers: done in" in (a.description or "") for a in bars), bars[-3:]
 
     assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
     assert set(states(out).values()) == {"Cached"}

@@ -8,12 +8,16 @@ import subprocess
 import numpy as np
 import pytest
 
-from neuralslicer.gcode import parse_gcode, quaternion_to_matrix, robot_table, write_gcode, write_robot_json
+from neuralslicer.gcode import (ROBOT_COLUMNS, parse_gcode, quaternion_to_matrix, robot_table, tool_frames,
+                                write_gcode, write_robot_csv, write_robot_json)
+from neuralslicer.gcode.writers import MIN_MOVE_S
 from neuralslicer.motion import (PRINT, RETRACT, forward_kinematics, load_profile, plan_motion, plan_print,
                                  program_metrics)
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.outputs import write_print_outputs
+from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack
+from neuralslicer.toolpath.types import Toolpaths
 
 
 def _angle_deg(a, b):
@@ -117,16 +121,122 @@ def test_linuxcnc_rs274_accepts_the_program(tmp_path):
     assert np.allclose(vals[:, 3], prog.extruder, atol=1e-4)
 
 
+def _col(table, name):
+    return table[:, ROBOT_COLUMNS.index(name)]
+
+
 def test_robot_export_orientation_and_extrusion(tmp_path, curved):
-    tp, _, _ = curved
-    table = robot_table(tp)
+    tp, prog, _ = curved
+    table = robot_table(tp, profile=prog.profile)
+    assert table.shape == (len(tp), len(ROBOT_COLUMNS))
     rot = quaternion_to_matrix(table[:, 6:10])
     assert np.allclose(rot[:, :, 2], -tp.axis, atol=1e-7)                 # tool z = -LPD
     assert np.allclose(np.einsum("nij,nik->njk", rot, rot), np.eye(3), atol=1e-7)
+    # the quaternion is the frame, whose x axis is the xx, xy, xz columns
+    assert np.allclose(rot, tool_frames(tp.axis, tp.xyz, tp.extrude), atol=1e-7)
+    assert np.allclose(rot[:, :, 0], table[:, [ROBOT_COLUMNS.index(c) for c in ("xx", "xy", "xz")]], atol=1e-7)
     assert np.isclose(table[:, 11].sum(), tp.deposited_volume())
+    assert np.array_equal(_col(table, "layer_height"), tp.thickness)
+    assert np.array_equal(_col(table, "extruder_toggle"), np.r_[tp.extrude[1:], False])
     import json
-    doc = json.loads(write_robot_json(tmp_path / "r.json", tp).read_text())
+    doc = json.loads(write_robot_json(tmp_path / "r.json", tp, profile=prog.profile).read_text())
     assert doc["columns"][6:10] == ["qw", "qx", "qy", "qz"] and len(doc["rows"]) == len(tp)
+    assert doc["columns"] == list(ROBOT_COLUMNS) and "wait_time" in doc["notes"]
+    csv = np.loadtxt(write_robot_csv(tmp_path / "r.csv", tp, profile=prog.profile), delimiter=",", skiprows=1)
+    assert csv.shape == table.shape and np.allclose(csv, table, atol=1e-5)
+
+
+def _loop(n=72, radius=10.0, tilt=0.0):
+    """One closed printed loop (a regular n-gon, closed by its first point) with tool axes tipped outwards by
+    ``tilt`` (a cap's rim), reached by a travel from the centre."""
+    phi = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    ring = np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.full(n, 1.0)])
+    xyz = np.vstack([[0.0, 0.0, 1.0], ring, ring[:1]])
+    axis = np.column_stack([tilt * np.cos(phi), tilt * np.sin(phi), np.ones(n)])
+    axis = np.vstack([[0.0, 0.0, 1.0], axis, axis[:1]])
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    m = len(xyz)
+    extrude = np.r_[False, False, np.ones(m - 2, bool)]
+    return Toolpaths(layer=np.zeros(m, np.int64), path=np.zeros(m, np.int64), xyz=xyz, axis=axis,
+                     thickness=np.full(m, 0.4), width=np.full(m, 0.8), extrude=extrude)
+
+
+def _angles(a, b):
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0)))
+
+
+@pytest.mark.parametrize("tilt", [0.0, 0.6])
+def test_robot_frame_follows_a_closed_loop_without_jumps(tilt):
+    tp = _loop(tilt=tilt)
+    x = tool_frames(tp.axis, tp.xyz, tp.extrude)[:, :, 0]
+    d = np.diff(tp.xyz, axis=0)
+    u = d / np.linalg.norm(d, axis=1, keepdims=True).clip(1e-300)
+    turn = np.r_[0.0, _angles(u[:-1], u[1:]), 0.0]                     # the path's turn at each point
+    turn[np.linalg.norm(np.r_[d, [[0, 0, 0]]], axis=1) == 0] = 0.0
+    loop = np.arange(1, len(tp) - 1)                                    # the ring (the last point closes it)
+    jump = _angles(x[loop[:-1]], x[loop[1:]])
+    tool_turn = _angles(tp.axis[loop[:-1]], tp.axis[loop[1:]])
+    allowed = np.maximum(turn[loop[:-1]], turn[loop[1:]]) + tool_turn + 1e-6
+    assert (jump <= allowed).all() and jump.max() < 10.0
+    # x points along the path: forward, orthogonal to the tool axis
+    chord = tp.xyz[loop + 1] - tp.xyz[loop - 1]
+    assert (np.einsum("ij,ij->i", x[loop], chord) > 0).all()
+    assert np.abs(np.einsum("ij,ij->i", x, tp.axis)).max() < 1e-9
+    if tilt == 0.0:                          # planar: x is the chord's direction; at the start, the first edge's
+        assert _angles(x[loop[1:]], chord[1:] / np.linalg.norm(chord[1:], axis=1, keepdims=True)).max() < 1e-6
+        assert _angles(x[1:2], d[1:2] / np.linalg.norm(d[1:2]))[0] < 1e-6
+    # the closing point and the travel's start carry the neighbouring frame over
+    assert _angles(x[-2:-1], x[-1:])[0] <= 5.0 + 1e-6
+
+
+def test_robot_velocities_waits_and_blends_follow_the_profile(curved):
+    tp, _, _ = curved
+    profile = load_profile("reprap_5axis")
+    table = robot_table(tp, profile=profile)
+    f, ex = profile.feeds, profile.extrusion
+    v = _col(table, "velocity")
+    first = tp.layer == 0
+    assert np.all(v[tp.extrude & first] == f.first_layer_mm_s) and np.all(v[tp.extrude & ~first] == f.print_mm_s)
+    assert np.all(v[~tp.extrude] == f.travel_mm_s) and (tp.extrude & ~first).any()
+    # waits: the prime time where the G-code program primes (after each retraction, and at the start)
+    prog = plan_motion(tp, profile, platform_z=0.0)
+    wait = _col(table, "wait_time")
+    assert np.count_nonzero(wait) == prog.attrs["n_retractions"] + 1
+    assert np.allclose(wait[wait > 0], ex.prime_mm / f.retract_mm_s)
+    toggle = _col(table, "extruder_toggle").astype(bool)
+    assert (toggle[wait > 0] & ~np.r_[False, toggle[:-1]][wait > 0]).all()     # where the extruder turns on
+    # blends: within the width fraction and the neighbouring segments, zero at path ends and on travels
+    r = _col(table, "blend_radius")
+    seg = tp.segment_lengths()
+    inner = np.r_[False, tp.extrude[1:-1] & tp.extrude[2:], False]
+    assert (r[~inner] == 0).all() and (r > 0).any()
+    assert (r <= 0.5 * tp.width + 1e-12).all() and (r[1:-1] <= 0.3 * np.minimum(seg[1:-1], seg[2:]) + 1e-12).all()
+
+
+@pytest.mark.parametrize("feed_basis", ["xyz", "all_axes"])
+def test_reprap_feed_gives_every_move_its_planned_time(tmp_path, feed_basis):
+    """Under the firmware's rule (NIST RS274 rule A, RepRapFirmware / Marlin), distance / F = planned time."""
+    layers = planar_stack(2, size=6.0, n=7) + cap_stack(2, r0=3.0, theta_max_deg=40.0, center=(0, 0, -1.5),
+                                                         subdivisions=3)
+    profile = load_profile("reprap_5axis").model_copy(deep=True)
+    profile.kinematics.pivot = (5.0, -7.0, 60.0)
+    profile.gcode.feed_basis = feed_basis
+    program = plan_motion(toolpaths(layers, platform_z=0.0), profile, platform_z=0.0)
+    letters = program.axis_letters
+    moves = parse_gcode(write_gcode(tmp_path / "p.gcode", program), axes="".join(letters))
+    assert len(moves) == len(program)
+    pos = np.column_stack([moves.axes[c] for c in letters[:5]])
+    d = np.diff(pos, axis=0)
+    xyz, rot = np.linalg.norm(d[:, :3], axis=1), np.linalg.norm(d[:, 3:5], axis=1)
+    de = np.abs(np.diff(moves.axes[letters[5]]))
+    dist = np.hypot(xyz, rot) if feed_basis == "all_axes" else xyz
+    dist = np.where(dist > 0, dist, np.where(rot > 0, rot, de))        # linear axes, else rotary, else filament
+    seconds = dist / (moves.feed[1:] / 60.0)
+    planned = np.maximum(program.time_s[1:], MIN_MOVE_S)
+    assert np.allclose(seconds, planned, rtol=1e-4, atol=0.0)
+    kinds = {"rotary-only": (xyz == 0) & (rot > 0), "filament-only": (xyz == 0) & (rot == 0),
+             "mixed": (xyz > 0) & (rot > 0)}
+    assert all(k.any() for k in kinds.values()), {n: int(k.sum()) for n, k in kinds.items()}
 
 
 def test_outputs_and_program_round_trip(tmp_path, curved):

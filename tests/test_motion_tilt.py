@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from neuralslicer.errors import PlanError
 from neuralslicer.motion import check_collisions
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.motion.reorient import tilt_away
@@ -111,5 +112,8 @@ def test_axes_beyond_the_b_range_are_turned_back_within_the_tilt_bound():
     assert np.allclose(np.arctan2(out.axis[:, 1], out.axis[:, 0]), np.arctan2(axis[:, 1], axis[:, 0]))   # azimuth kept
     assert summary == {"n_clamped": 2, "max_clamp_deg": pytest.approx(14.0), "n_unreachable": 1}
     profile = load_profile("table_bc_linuxcnc")                                # B within +-100 deg
-    assert plan_motion(tp, profile, platform_z=0.0).attrs["n_rotary_out_of_range"] == 3
-    assert plan_motion(out, profile, platform_z=0.0).attrs["n_rotary_out_of_range"] == 1
+    for unreachable in (tp, out):                                              # 3, then 1 pose out of range
+        with pytest.raises(PlanError, match="outside the machine's range"):
+            plan_motion(unreachable, profile, platform_z=0.0)
+    turned, _ = clamp_to_reach(tp, 100.0, 180.0)
+    assert np.abs(plan_motion(turned, profile, platform_z=0.0).machine[:, 3]).max() <= 100.0 + 1e-9

@@ -7,6 +7,7 @@ from typing import Iterator
 import numpy as np
 
 from neuralslicer.motion.planning import TRAVEL, MachineProgram, program_metrics
+from neuralslicer.motion.timing import move_times
 from neuralslicer.fileio import atomic_path
 
 MIN_MOVE_S = 1e-4
@@ -60,8 +61,8 @@ def _layer_segments(program: MachineProgram, first: int = 0) -> Iterator[tuple[i
     layer = program.layer
     starts = np.flatnonzero(np.diff(layer)) + 1
     bounds = np.concatenate([[0], starts, [n]])
-    elapsed = np.concatenate([[0.0], np.cumsum(program.time_s)])
-    total = max(float(elapsed[-1]), 1e-9)
+    elapsed = np.concatenate([[0.0], np.cumsum(move_times(program.machine, program.time_s, program.profile.feeds))])
+    total = max(float(elapsed[-1]), 1e-9)       # the estimate under the axis limits (motion/timing.py)
     n_layers = len(bounds) - 1
     for k in range(n_layers):
         a, b = int(bounds[k]), int(bounds[k + 1])
@@ -140,19 +141,38 @@ def _linuxcnc_chunks(program: MachineProgram):
     yield ["G94", "G92.1"] + list(g.footer) + ["M2"]
 
 
+def _feed_words(mm_min: np.ndarray) -> np.ndarray:
+    """``F`` words rounded to 1e-4 relative at most (1 to 8 decimals): a slow feed keeps its digits."""
+    f = np.asarray(mm_min, np.float64)
+    dec = np.clip(np.ceil(3.7 - np.log10(f)), 1, 8).astype(np.int64)
+    out = np.empty(len(f), dtype=object)
+    for d in np.unique(dec):
+        sel = dec == d
+        out[sel] = np.char.add("F", _fmt(f[sel], int(d)))
+    return out
+
+
 def _reprap_body(program: MachineProgram, start: int, stop: int) -> list[str]:
+    """G0/G1 lines of moves start..stop-1 with F (mm/min) such that the firmware's distance over F is the
+    move's planned time: the distance as RepRapFirmware and Marlin measure it (NIST RS274 rule A) from the
+    coordinates as written (rounded): with ``feed_basis`` "xyz" the XYZ distance when a linear axis moves,
+    else the B/C vector (deg), else the filament; with "all_axes" the XYZ and B/C vector together (B, C
+    counted as linear axes); the extruder counts only in filament-only moves."""
     g = program.profile.gcode
     lo = max(start - 1, 0)
     dt = np.maximum(program.time_s[lo:stop], MIN_MOVE_S)
     m = program.machine[lo:stop]
     k = len(m)
+    lin, rot = np.round(m[:, :3], g.decimals_linear), np.round(m[:, 3:5], g.decimals_rotary)
+    ext = np.round(program.extruder[lo:stop], g.decimals_extruder)
     dxyz, drot, de = np.zeros(k), np.zeros(k), np.zeros(k)
-    dxyz[1:] = np.linalg.norm(np.diff(m[:, :3], axis=0), axis=1)
-    drot[1:] = np.linalg.norm(np.diff(m[:, 3:5], axis=0), axis=1)
-    de[1:] = np.abs(np.diff(program.extruder[lo:stop]))
+    dxyz[1:] = np.linalg.norm(np.diff(lin, axis=0), axis=1)
+    drot[1:] = np.linalg.norm(np.diff(rot, axis=0), axis=1)
+    de[1:] = np.abs(np.diff(ext))
     dist = np.sqrt(dxyz ** 2 + drot ** 2) if g.feed_basis == "all_axes" else dxyz
-    dist = np.where(dist > 1e-9, dist, np.where(drot > 1e-9, drot, de))
-    feed = np.char.add("F", _fmt(np.maximum(dist / dt * 60.0, 1.0), 1))[start - lo:]
+    dist = np.where(dist > 0, dist, np.where(drot > 0, drot, de))
+    rate = np.where(dist > 0, dist / dt * 60.0, program.profile.feeds.travel_mm_s * 60.0)
+    feed = _feed_words(rate)[start - lo:]
     kind = program.kind[start:stop]
     prefix = np.where(kind == TRAVEL, "G0", "G1").astype(object)
     if start == 0:

@@ -7,9 +7,11 @@ from neuralslicer.motion.pipeline import plan_print
 from neuralslicer.motion.planning import (PRINT, RETRACT, TRAVEL, MachineProgram, auto_part_offset, plan_motion,
                                           program_metrics)
 from neuralslicer.motion.profile import MachineProfile, load_profile, profile_names
+from neuralslicer.motion.timing import move_times, program_time
 
 __all__ = [
     "CollisionReport", "MachineProfile", "MachineProgram", "PRINT", "RETRACT", "TRAVEL", "auto_part_offset",
     "check_collisions", "forward_kinematics", "inverse_kinematics", "load_profile", "machine_position",
-    "plan_motion", "plan_print", "platform_clearance", "profile_names", "program_metrics",
+    "move_times", "plan_motion", "plan_print", "platform_clearance", "profile_names", "program_metrics",
+    "program_time",
 ]

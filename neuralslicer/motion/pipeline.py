@@ -8,12 +8,14 @@ from typing import Callable, Sequence
 import numpy as np
 import trimesh
 
+from neuralslicer.errors import InputError, PlanError
 from neuralslicer.layers import LayerConfig
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
-from neuralslicer.motion.planning import MachineProgram, plan_motion, program_metrics
+from neuralslicer.motion.planning import MachineProgram, merge_short_moves, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.motion.reorient import clamp_to_reach, tilt_away
 from neuralslicer.motion.travel import raise_travels
+from neuralslicer.toolpath.beads import bead_summary, hold_beads
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.types import Toolpaths
@@ -37,7 +39,13 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
         profile = load_profile(profile or "table_bc_linuxcnc")
     cfg = toolpath_cfg or ToolpathConfig()
     t0 = time.perf_counter()
+    w_lo, w_hi = profile.nozzle.bead_width_mm
+    if not w_lo <= cfg.line_width <= w_hi:
+        raise InputError("toolpath.line_width", f"{cfg.line_width:g} mm is outside the bead widths the nozzle of "
+                         f"{profile.name} lays ({w_lo:g}..{w_hi:g} mm, nozzle.bead_width_mm)")
     tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max)
+    tp, beads = hold_beads(tp, profile.nozzle.bead_thickness_mm) if cfg.thin_beads == "carry" else (tp, None)
+    tp, n_merged = merge_short_moves(tp, profile)
     t1 = time.perf_counter()
     report = check_collisions(tp, profile.nozzle, platform_z)
     t2 = time.perf_counter()
@@ -51,6 +59,8 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     metrics["travel_lift"] = lifted
     metrics["axis_tilt"] = tilt
     metrics["axis_reach"] = reach
+    metrics["n_merged_short_moves"] = n_merged
+    metrics["beads"] = beads if beads is not None else bead_summary(tp, profile.nozzle.bead_thickness_mm)
     metrics["n_waypoints"] = len(tp)
     metrics["n_layers"] = tp.n_layers
     metrics["n_paths"] = int(tp.attrs.get("n_paths", 0))
@@ -108,11 +118,21 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
 
 def _clamp_reach(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,
                  cfg: ToolpathConfig) -> tuple[Toolpaths, CollisionReport, dict]:
-    """Tool axes beyond the machine's B range turned back to it (up to ``cfg.collision_tilt_deg``), the turned
+    """Tool axes beyond the machine's B range turned back to it: up to ``cfg.collision_tilt_deg`` always, any
+    angle with ``kinematics.beyond_reach = "turn"`` (else a PlanError naming the layers); the turned
     waypoints checked for collisions again."""
     kin = profile.kinematics
     reach_deg = min(180.0, max(kin.b_max_deg, -kin.b_min_deg))
-    clamped, summary = clamp_to_reach(tp, reach_deg, cfg.collision_tilt_deg)
+    excess = np.degrees(np.arccos(np.clip(tp.axis[:, 2], -1.0, 1.0))) - reach_deg
+    far = excess > cfg.collision_tilt_deg + 1e-9
+    if far.any() and kin.beyond_reach == "fail":
+        layers = np.unique(tp.layer[far])
+        raise PlanError(f"{int(far.sum()):,} waypoints need the tool axis more than {cfg.collision_tilt_deg:g} deg beyond "
+                        f"the machine's B reach ({reach_deg:g} deg from +z, {profile.name}) in layers "
+                        f"{', '.join(str(int(k)) for k in layers[:10])}{' ...' if len(layers) > 10 else ''}; "
+                        "kinematics.beyond_reach: turn turns them back onto the limit")
+    clamped, summary = clamp_to_reach(tp, reach_deg, 180.0)
+    summary["n_beyond_tilt_bound"] = int(far.sum())
     if clamped is tp:
         return tp, report, summary
     changed = np.flatnonzero(np.any(clamped.axis != tp.axis, axis=1))

@@ -1,12 +1,14 @@
 """Motion planning (SPEC step 12): machine coordinates, rotary splitting, feeds, extrusion, retraction."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from neuralslicer.errors import PlanError
 from neuralslicer.motion.kinematics import forward_kinematics, inverse_kinematics, machine_position
 from neuralslicer.motion.profile import MachineProfile
+from neuralslicer.motion.timing import program_time
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
 
@@ -107,7 +109,7 @@ def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
     t_mean[1:] = 0.5 * (thick[1:] + thick[:-1])
     w_mean[1:] = 0.5 * (width[1:] + width[:-1])
     de = np.where(extrude, profile.extrusion.flow * t_mean * w_mean * seg / filament_area(profile), 0.0)
-    speed = np.where(extrude, np.where(layer == layer.min(initial=0), f.first_layer_mm_s, f.print_mm_s),
+    speed = np.where(extrude, np.where(layer == layer.min(), f.first_layer_mm_s, f.print_mm_s),
                      f.travel_mm_s)
     drot[1:] = np.maximum(np.abs(np.diff(b)), np.abs(np.diff(c)))
     return {"xyz": xyz, "b": b, "c": c, "de": de, "dt": np.maximum(seg / speed, drot / f.rotary_deg_s),
@@ -178,17 +180,27 @@ def safe_height(program: MachineProgram) -> float:
     return float(kin.pivot[2] + np.linalg.norm(kin.c_offset) + reach + program.profile.gcode.safe_clearance_mm)
 
 
-def _with_safe_start_end(program: MachineProgram) -> MachineProgram:
+def _home_c(c: float, lo: float | None, hi: float | None) -> float:
+    """The whole turn nearest ``c`` inside [lo, hi] (C home at the end of a program)."""
+    k = np.round(c / 360.0)
+    if lo is not None:
+        k = max(k, np.ceil(lo / 360.0 - 1e-12))
+    if hi is not None:
+        k = min(k, np.floor(hi / 360.0 + 1e-12))
+    return float(360.0 * k)
+
+
+def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None) -> MachineProgram:
     """The program between a safe start (safe height over the approach point with B = C = 0, rotary axes to the
     first pose up there, the approach down the tool axis, prime) and a safe end (retract, lift to the safe
     height, B to 0 and C to its nearest full turn, park): all inserted moves, source -1."""
     prof = program.profile
     kin, f, ex, g = prof.kinematics, prof.feeds, prof.extrusion, prof.gcode
-    z_safe = safe_height(program)
+    z_safe = safe_height(program) if z_safe is None else z_safe
     m0, mn = program.machine[0], program.machine[-1]
-    above0 = np.array([m0[0], m0[1], z_safe, 0.0, 0.0])
+    above0 = np.array([m0[0], m0[1], z_safe, 0.0, _home_c(m0[4], kin.c_min_deg, kin.c_max_deg)])
     start = np.vstack([above0[None], _rotary_steps(above0, [np.r_[m0[:2], z_safe, m0[3:5]]], kin.max_rotary_step_deg)])
-    home = np.r_[mn[:2], z_safe, 0.0, 360.0 * np.round(mn[4] / 360.0)]
+    home = np.r_[mn[:2], z_safe, 0.0, _home_c(mn[4], kin.c_min_deg, kin.c_max_deg)]
     park = np.r_[g.park_xy if g.park_xy is not None else mn[:2], z_safe, home[3:5]]
     end = _rotary_steps(mn, [np.r_[mn[:2], z_safe, mn[3:5]], home, park], kin.max_rotary_step_deg)
     # moves: start..., approach (program move 0), prime, program moves 1.., retract, end...
@@ -213,6 +225,156 @@ def _with_safe_start_end(program: MachineProgram) -> MachineProgram:
                           part_offset=program.part_offset, profile=prof, attrs={**program.attrs, "safe_z": z_safe})
 
 
+def merge_short_moves(tp: Toolpaths, profile: MachineProfile) -> tuple[Toolpaths, int]:
+    """Printing waypoints reached by a move shorter than ``feeds.min_move_s`` dropped, so the move goes on to
+    the next waypoint of the path (path ends, travels and the first layer's speed respected); greedy along each
+    path, so a run of tiny moves becomes one. Returns the toolpaths and the number of waypoints dropped."""
+    f = profile.feeds
+    n = len(tp)
+    if f.min_move_s <= 0 or n < 3:
+        return tp, 0
+    speed = np.where(tp.layer == tp.layer.min(), f.first_layer_mm_s, f.print_mm_s)
+    turn = np.zeros(n)
+    turn[1:] = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tp.axis[1:], tp.axis[:-1]), -1.0, 1.0)))
+    seg = tp.segment_lengths()
+    same = np.zeros(n, bool)
+    same[1:-1] = (tp.path[1:-1] >= 0) & (tp.path[1:-1] == tp.path[:-2]) & (tp.path[1:-1] == tp.path[2:])
+    inner = same & tp.extrude & np.r_[tp.extrude[1:], False]
+    short = np.maximum(seg / speed, turn / f.rotary_deg_s) < f.min_move_s
+    cand = np.flatnonzero(inner & short)
+    if not len(cand):
+        return tp, 0
+    keep = np.ones(n, bool)
+    prev_of = {}
+    for i in cand:                                  # few: the moves under a few milliseconds
+        j = prev_of.get(i - 1, i - 1) if not keep[i - 1] else i - 1
+        d = float(np.linalg.norm(tp.xyz[i] - tp.xyz[j]))
+        a = float(np.degrees(np.arccos(np.clip(tp.axis[i] @ tp.axis[j], -1.0, 1.0))))
+        if max(d / speed[i], a / f.rotary_deg_s) < f.min_move_s:
+            keep[i] = False
+            prev_of[i] = j
+    if keep.all():
+        return tp, 0
+    sub = {k: getattr(tp, k)[keep] for k in ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")}
+    return replace(tp, **sub, attrs=dict(tp.attrs)), int((~keep).sum())
+
+
+def _segment_starts(kind: np.ndarray) -> IndexArray:
+    """Moves where a travel run begins (and move 0): the places to unwind C between paths."""
+    trav = kind == TRAVEL
+    starts = np.flatnonzero(trav[1:] & ~trav[:-1]) + 1
+    return np.concatenate([[0], starts]).astype(np.int64)
+
+
+def _turns_fitting(c_lo: float, c_hi: float, lo: float, hi: float) -> tuple[float, float]:
+    """Range of whole turns k with [c_lo, c_hi] + 360 k inside [lo, hi] (empty when first > second)."""
+    return np.ceil((lo - c_lo) / 360.0 - 1e-12), np.floor((hi - c_hi) / 360.0 + 1e-12)
+
+
+def c_turns(c: FloatArray, kind: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Whole turns (n,) to add to each move's C so that all lie in [lo, hi]: one number for the program when
+    that fits; else kept per path (a travel run and the moves up to the next) while a path fits, changed at
+    its start when it must, and inside a path only when the path alone spans more than the range (there to
+    the far end of the range, the fewest unwinds). The first turn count is the one nearest zero. With one
+    side of the range open a single count always fits."""
+    n = len(c)
+    k_lo, k_hi = _turns_fitting(float(c.min(initial=0.0)), float(c.max(initial=0.0)), lo, hi)
+    if n == 0 or k_lo <= k_hi:
+        return np.full(n, 0.0 if n == 0 else float(np.clip(0.0, k_lo, k_hi)))
+    starts = _segment_starts(kind)
+    seg_lo, seg_hi = np.minimum.reduceat(c, starts), np.maximum.reduceat(c, starts)
+    ends = np.r_[starts[1:], n]
+    turns = np.empty(n)
+    k = None
+    for s, (a, b) in enumerate(zip(starts, ends)):
+        f_lo, f_hi = _turns_fitting(float(seg_lo[s]), float(seg_hi[s]), lo, hi)
+        if f_lo <= f_hi:
+            k = float(np.clip(0.0 if k is None else k, f_lo, f_hi))
+            turns[a:b] = k
+            continue
+        rising = c[b - 1] >= c[a]
+        for i in range(a, b):                      # the path spans more than the range: unwind inside it,
+            if k is None or not lo <= c[i] + 360.0 * k <= hi:   # to the end of the range it moves away from
+                up = c[i] + 360.0 * k > hi if k is not None else rising
+                k = float(np.ceil((lo - c[i]) / 360.0 - 1e-12) if up else np.floor((hi - c[i]) / 360.0 + 1e-12))
+            turns[i] = k
+    return turns
+
+
+def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, int]:
+    """Keep C inside the profile's range by whole turns (``c_turns``); where the turn count changes, the
+    program retracts, lifts straight up (along the tool) to ``z_safe``, turns C there, comes back down to the
+    same pose and primes. Returns the program and the number of unwinds."""
+    prof = program.profile
+    kin, f, ex = prof.kinematics, prof.feeds, prof.extrusion
+    lo = -np.inf if kin.c_min_deg is None else float(kin.c_min_deg)
+    hi = np.inf if kin.c_max_deg is None else float(kin.c_max_deg)
+    if not len(program) or (np.isinf(lo) and np.isinf(hi)):
+        return program, 0
+    turns = c_turns(program.machine[:, 4], program.kind, lo, hi)
+    machine = program.machine.copy()
+    machine[:, 4] += 360.0 * turns
+    at = np.flatnonzero(np.diff(turns) != 0) + 1
+    if not len(at):
+        return replace(program, machine=machine), 0
+    pieces: dict[str, list] = {k: [] for k in ("machine", "de", "time_s", "kind", "source", "layer")}
+    de = np.diff(program.extruder, prepend=0.0)
+    prev = 0
+    for j in at:
+        for key, arr in (("machine", machine), ("de", de), ("time_s", program.time_s), ("kind", program.kind),
+                         ("source", program.source), ("layer", program.layer)):
+            pieces[key].append(arr[prev:j])
+        p = machine[j - 1]
+        up = np.r_[p[:2], max(z_safe, p[2]), p[3:5]]
+        turned = np.r_[up[:4], p[4] + 360.0 * (turns[j] - turns[j - 1])]
+        spin = _rotary_steps(up, [turned], kin.max_rotary_step_deg)
+        down = np.r_[p[:4], turned[4]]
+        block = np.vstack([p, up, spin, down, down])
+        m = len(block)
+        seg = np.linalg.norm(np.diff(block[:, :3], axis=0, prepend=block[:1, :3]), axis=1)
+        rot = np.abs(np.diff(block[:, 3:5], axis=0, prepend=block[:1, 3:5])).max(axis=1)
+        t = np.maximum(seg / f.travel_mm_s, rot / f.rotary_deg_s)
+        t[0], t[-1] = ex.retract_mm / f.retract_mm_s, ex.prime_mm / f.retract_mm_s
+        pieces["machine"].append(block)
+        pieces["de"].append(np.r_[-ex.retract_mm, np.zeros(m - 2), ex.prime_mm])
+        pieces["time_s"].append(np.maximum(t, 1e-3))
+        pieces["kind"].append(np.r_[RETRACT, np.full(m - 2, TRAVEL), RETRACT].astype(np.int8))
+        pieces["source"].append(np.full(m, -1, np.int64))
+        pieces["layer"].append(np.full(m, program.layer[j - 1], np.int64))
+        prev = j
+    for key, arr in (("machine", machine), ("de", de), ("time_s", program.time_s), ("kind", program.kind),
+                     ("source", program.source), ("layer", program.layer)):
+        pieces[key].append(arr[prev:])
+    cat = {k: np.concatenate(v) for k, v in pieces.items()}
+    mach = cat["machine"]
+    xyz, axis = forward_kinematics(mach[:, :3], mach[:, 3], mach[:, 4], kin, program.part_offset)
+    out = replace(program, machine=mach, extruder=np.cumsum(cat["de"]), time_s=cat["time_s"],
+                  kind=cat["kind"].astype(np.int8), source=cat["source"], layer=cat["layer"],
+                  part_xyz=xyz, part_axis=axis, attrs=dict(program.attrs))
+    return out, int(len(at))
+
+
+def check_limits(program: MachineProgram) -> None:
+    """Raise PlanError when any pose lies outside the profile's B or C range (naming layers and counts)."""
+    kin = program.profile.kinematics
+    b, c = program.machine[:, 3], program.machine[:, 4]
+    tol = 1e-6
+    bad_b = (b < kin.b_min_deg - tol) | (b > kin.b_max_deg + tol)
+    bad_c = np.zeros(len(c), bool)
+    if kin.c_min_deg is not None:
+        bad_c |= c < kin.c_min_deg - tol
+    if kin.c_max_deg is not None:
+        bad_c |= c > kin.c_max_deg + tol
+    for bad, axis, lo, hi in ((bad_b, "B", kin.b_min_deg, kin.b_max_deg), (bad_c, "C", kin.c_min_deg, kin.c_max_deg)):
+        if bad.any():
+            layers, counts = np.unique(program.layer[bad], return_counts=True)
+            where = ", ".join(f"layer {int(k)} ({int(n)})" for k, n in list(zip(layers, counts))[:8])
+            more = f" and {len(layers) - 8} more layers" if len(layers) > 8 else ""
+            raise PlanError(f"{int(bad.sum()):,} moves put {axis} outside the machine's range [{lo}, {hi}] deg "
+                            f"({program.profile.name}): {where}{more}. Turn the tool axes into reach "
+                            "(plan_print does; kinematics.beyond_reach: turn) or widen the range in the profile")
+
+
 def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None = None) -> MachineProgram:
     """Machine program for toolpaths: IK with continuous B/C, rotary splitting, feeds, extrusion.
 
@@ -235,15 +397,19 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     program = MachineProgram(machine=machine, extruder=np.cumsum(e["de"]), time_s=e["dt"], kind=e["kind"],
                              source=e["source"].astype(np.int64), layer=e["layer"].astype(np.int64),
                              part_xyz=e["xyz"], part_axis=a_fk, part_offset=offset, profile=profile)
+    z_safe = safe_height(program)
+    program, n_unwinds = unwind_c(program, z_safe)
     if profile.gcode.safe_start_end and len(program):
-        program = _with_safe_start_end(program)
+        program = _with_safe_start_end(program, z_safe)
+    check_limits(program)
     machine = program.machine
     b_all = machine[:, 3]
     program.attrs = {
         **program.attrs,
         "platform_z": pz,
         "n_singular": int(mv["singular"].sum()),
-        "n_rotary_out_of_range": int(mv["out"].sum()),
+        "n_rotary_out_of_range": 0,
+        "n_c_unwinds": n_unwinds,
         "n_inserted_rotary": int(len(split["xyz"]) - len(mv["xyz"])),
         "n_retractions": n_retractions,
         "max_rotary_step_deg": float(np.max(np.abs(np.diff(machine[:, 3:5], axis=0)), initial=0.0)),
@@ -262,7 +428,7 @@ def program_metrics(program: MachineProgram) -> dict:
     area = filament_area(program.profile)
     material = float(de[kind == PRINT].sum() * area / program.profile.extrusion.flow)
     return {
-        "estimated_print_time_s": float(program.time_s.sum()),
+        **program_time(program),
         "toolpath_length_mm": float(seg[kind == PRINT].sum()),
         "travel_length_mm": float(seg[kind == TRAVEL].sum()),
         "n_moves": len(program),

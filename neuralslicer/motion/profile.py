@@ -46,9 +46,15 @@ class Kinematics(_Model):
     #: B range (deg); both IK solutions (B, C) and (-B, C+180) are tried.
     b_min_deg: float = -90.0
     b_max_deg: float = 90.0
-    #: C range (deg); null = unlimited (continuous rotary axis, unwrapped).
+    #: C range (deg); null = unlimited (continuous rotary axis, unwrapped). When set (a span of at least
+    #: 360 deg), C is unwound by whole turns where it would leave the range: between paths where a path
+    #: fits, else inside it, each time retracting, lifting to the safe height, turning, coming back down.
     c_min_deg: float | None = None
     c_max_deg: float | None = None
+    #: tool axes tipped further from +z than the B range reaches: "turn" them back onto the limit (azimuth
+    #: kept, the turned waypoints checked for collisions again and reported), or "fail" the plan with an
+    #: error naming the layers. Turns up to ``toolpath.collision_tilt_deg`` happen either way.
+    beyond_reach: Literal["turn", "fail"] = "turn"
     #: largest rotary change per move (deg); longer moves are split.
     max_rotary_step_deg: float = Field(2.0, gt=0)
     #: tool axes within this angle of the C axis are singular: B = 0 and C keeps its previous value.
@@ -56,13 +62,25 @@ class Kinematics(_Model):
 
 
 class Feeds(_Model):
-    """Speeds (mm/s of the tool tip relative to the part, deg/s for pure rotations)."""
+    """Speeds (mm/s of the tool tip relative to the part, deg/s for pure rotations) and the machine's axis
+    limits, which the print-time estimate (``neuralslicer.motion.timing``) respects."""
 
     print_mm_s: float = Field(20.0, gt=0)
     first_layer_mm_s: float = Field(10.0, gt=0)
     travel_mm_s: float = Field(60.0, gt=0)
+    #: programmed rotary speed, also the B and C axes' velocity limit in the time estimate.
     rotary_deg_s: float = Field(90.0, gt=0)
     retract_mm_s: float = Field(30.0, gt=0)
+    #: acceleration limit of each linear axis X, Y, Z (mm/s^2); 1000 suits a LinuxCNC table machine,
+    #: RepRap-class machines run 1000-3000.
+    accel_mm_s2: float = Field(1000.0, gt=0)
+    #: acceleration limit of each rotary axis B, C (deg/s^2): 720 reaches the rotary speed in 1/8 s.
+    rotary_accel_deg_s2: float = Field(720.0, gt=0)
+    #: velocity limit of each linear axis X, Y, Z (mm/s), whatever the programmed feed.
+    max_axis_mm_s: float = Field(150.0, gt=0)
+    #: shortest move the controller executes at full rate (s): no move is faster (a controller's block
+    #: rate; LinuxCNC needs a few servo periods per segment, Marlin slows segments below min_segment_time).
+    min_move_s: float = Field(0.005, ge=0)
 
 
 class Extrusion(_Model):
@@ -106,7 +124,13 @@ class GcodeOptions(_Model):
     dialect: Literal["linuxcnc", "reprap"] = "linuxcnc"
     #: LinuxCNC: G93 inverse-time feeds (exact tool-tip speed with rotary moves); else G94 mm/min.
     inverse_time: bool = True
-    #: RepRap: F in mm/min over the machine XYZ distance ("xyz") or over all axes ("all_axes").
+    #: RepRap: the distance F (mm/min) is measured over, as the firmware does (NIST RS274 rule A), from the
+    #: coordinates as written. "xyz": the XYZ distance when X, Y or Z moves, else the B/C vector in deg, else
+    #: the filament (RepRapFirmware 3 with B/C rotational, its default for axes A-D; Marlin 2.1 with rotary
+    #: axes). "all_axes": sqrt(dX^2 + dY^2 + dZ^2 + dB^2 + dC^2), B/C counted as linear (RepRapFirmware with
+    #: ``M584 ... S0``). The filament counts only in filament-only moves. F is set so that every move takes its
+    #: planned time under that rule; with "xyz" a rotation with little XYZ motion gets a very low F, which
+    #: RepRapFirmware raises to its minimum speed (M203 I), running it faster than planned.
     feed_basis: Literal["xyz", "all_axes"] = "xyz"
     decimals_linear: int = Field(4, ge=1, le=8)
     decimals_rotary: int = Field(5, ge=1, le=8)
@@ -148,6 +172,9 @@ class MachineProfile(_Model):
         k = self.kinematics
         if k.b_min_deg >= k.b_max_deg:
             raise ValueError("kinematics: b_min_deg must be below b_max_deg")
+        if k.c_min_deg is not None and k.c_max_deg is not None and k.c_max_deg - k.c_min_deg < 360.0:
+            raise ValueError("kinematics: the C range must span at least 360 deg (c_max_deg - c_min_deg), "
+                             "or be unlimited (null)")
         return self
 
 

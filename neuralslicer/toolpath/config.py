@@ -55,6 +55,10 @@ class ToolpathConfig(BaseModel):
     collision_tilt_ramp: float = Field(5.0, ge=0)
     #: more colliding waypoints than this are not tilted (the field itself needs to change).
     collision_tilt_max_waypoints: int = Field(20000, ge=0)
+    #: beads against the nozzle's range (machine profile ``nozzle.bead_thickness_mm``): "carry" stops
+    #: extruding where the gap to the layer below is thinner than the nozzle lays and carries that gap to the
+    #: bead above it in the next layer, and caps thicker gaps at the largest bead; "print" prints every gap.
+    thin_beads: Literal["carry", "print"] = "carry"
     #: patches whose area is below this (mm^2) are skipped (marching-tet slivers).
     min_patch_area: float = Field(0.05, ge=0)
 

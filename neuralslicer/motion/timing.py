@@ -1,0 +1,140 @@
+"""Print time under the machine's axis limits: every move a trapezoid (accelerate, cruise, decelerate).
+
+The model, per move ``i`` (from pose ``i-1`` to pose ``i``; move 0 has zero length):
+
+- All axes move linearly together (coordinated motion); the move's progress ``s`` runs from 0 to 1.
+- **Cruise rate** (1/s): the programmed one, ``1 / max(planned_s, min_move_s)``, lowered until no axis
+  exceeds its velocity limit (X, Y, Z: ``max_axis_mm_s``; B, C: ``rotary_deg_s``).
+- **Acceleration** (1/s^2): the largest one no axis exceeds (X, Y, Z: ``accel_mm_s2``; B, C:
+  ``rotary_accel_deg_s2``): the slowest axis governs.
+- **Junction speeds.** Speeds are measured in the axis space scaled by the velocity limits (each axis
+  delta divided by its limit; for moves without rotation this is the machine XYZ direction and a speed
+  proportional to mm/s). At the junction of two moves the speed is at most the smaller of their cruise
+  speeds times ``(1 + cos theta) / 2``, theta the angle between their scaled directions: full speed when
+  collinear, half at a right angle, zero at a reversal. Moves without axis motion (extruder only) start
+  and end at rest. The junction speeds are then lowered to what the moves' accelerations can reach over
+  their lengths (backward and forward pass, as a controller with unlimited look-ahead), so every move's
+  trapezoid from its entry to its exit speed is feasible; both passes are cumulative minima (vectorised).
+- The extruder is not limited (its acceleration is typically several times the axes'): moves that turn
+  no axis take their planned time, at least ``min_move_s``.
+
+Approximations: velocity jumps at junctions are allowed as the cosine rule says (no jerk or junction
+deviation model, no S-curves, no corner blending), and the look-ahead is unlimited.
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from neuralslicer.motion.profile import Feeds, MachineProfile
+from neuralslicer.types import FloatArray
+
+#: scaled move lengths (s at the axis velocity limits) at or below this count as no axis motion.
+_STILL = 1e-12
+
+
+class TimedProgram(Protocol):
+    """What ``program_time`` reads of a program: ``planning.MachineProgram`` fits (not imported here, so
+    that planning can call this module)."""
+
+    machine: FloatArray
+    time_s: FloatArray
+    profile: MachineProfile
+
+
+def axis_limits(feeds: Feeds) -> tuple[FloatArray, FloatArray]:
+    """Velocity and acceleration limits (5,) of X, Y, Z (mm/s, mm/s^2) and B, C (deg/s, deg/s^2)."""
+    v = np.array([feeds.max_axis_mm_s] * 3 + [feeds.rotary_deg_s] * 2, np.float64)
+    a = np.array([feeds.accel_mm_s2] * 3 + [feeds.rotary_accel_deg_s2] * 2, np.float64)
+    return v, a
+
+
+def junction_speeds(scaled: FloatArray, cruise: FloatArray, accel: FloatArray) -> FloatArray:
+    """Speed (n,) at the end of each move, in the scaled axis space (the module docstring's rule).
+
+    scaled : (n, 5) axis deltas of the moves divided by the axis velocity limits; cruise : (n,) cruise
+    speeds in that space (cruise rate x scaled length); accel : (n,) accelerations of the moves' progress
+    (1/s^2). The last move ends at rest; so does every move next to one without axis motion.
+    """
+    n = len(scaled)
+    length = np.linalg.norm(scaled, axis=1)
+    moving = length > _STILL
+    unit = scaled / np.where(moving, length, 1.0)[:, None]
+    cap = np.zeros(n)
+    if n > 1:
+        cos = np.clip(np.einsum("ij,ij->i", unit[:-1], unit[1:]), -1.0, 1.0)
+        both = moving[:-1] & moving[1:]
+        cap[:-1] = np.where(both, np.minimum(cruise[:-1], cruise[1:]) * 0.5 * (1.0 + cos), 0.0)
+    reach = np.where(moving, 2.0 * accel * length ** 2, 0.0)      # v_end^2 - v_start^2 a move can make
+    p = np.cumsum(reach)
+    sq = np.minimum.accumulate((cap ** 2 + p)[::-1])[::-1] - p    # backward: J_k^2 <= J_{k+1}^2 + reach_{k+1}
+    sq = p + np.minimum(np.minimum.accumulate(sq - p), 0.0)      # forward: J_k^2 <= J_{k-1}^2 + reach_k
+    return np.sqrt(np.maximum(sq, 0.0))
+
+
+def trapezoid_times(rate: FloatArray, accel: FloatArray, start: FloatArray, end: FloatArray) -> FloatArray:
+    """Time (n,) to cover a unit length from speed ``start`` to ``end`` with speed <= ``rate`` and
+    |acceleration| <= ``accel`` (all (n,), 1/s and 1/s^2; start, end <= rate and reachable)."""
+    peak_sq = accel + 0.5 * (start ** 2 + end ** 2)                 # top speed without a cruise phase
+    cruises = peak_sq > rate ** 2
+    peak = np.sqrt(np.minimum(peak_sq, rate ** 2))
+    ramps = (2.0 * peak - start - end) / accel
+    ramp_len = (2.0 * peak ** 2 - start ** 2 - end ** 2) / (2.0 * accel)
+    return ramps + np.where(cruises, np.maximum(1.0 - ramp_len, 0.0) / rate, 0.0)
+
+
+def _schedule(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> tuple[FloatArray, FloatArray]:
+    """Trapezoidal times (n,) and cruise-only times (n,) of the moves (the module docstring's model)."""
+    machine = np.asarray(machine, np.float64).reshape(-1, 5)
+    planned = np.asarray(planned_s, np.float64).reshape(-1)
+    n = len(machine)
+    delta = np.zeros((n, 5))
+    delta[1:] = np.diff(machine, axis=0)
+    v_lim, a_lim = axis_limits(feeds)
+    scaled = delta / v_lim
+    length = np.linalg.norm(scaled, axis=1)
+    moving = length > _STILL
+    nominal = np.where(moving | (planned > 0), np.maximum(planned, feeds.min_move_s), 0.0)
+    rate = np.where(moving, 1.0 / np.where(moving, np.maximum(nominal, np.abs(scaled).max(axis=1)), 1.0), 0.0)
+    with np.errstate(divide="ignore"):
+        accel = np.where(moving, np.min(a_lim / np.abs(delta), axis=1), 0.0)
+    cruise_t = np.where(moving, 1.0 / np.where(moving, rate, 1.0), nominal)
+    junction = junction_speeds(scaled, rate * length, accel)
+    w = np.where(moving, length, 1.0)
+    start = np.concatenate([[0.0], junction[:-1]]) / w
+    end = junction / w
+    times = nominal.copy()
+    m = moving
+    times[m] = trapezoid_times(rate[m], accel[m], np.minimum(start[m], rate[m]), np.minimum(end[m], rate[m]))
+    return times, cruise_t
+
+
+def move_times(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> FloatArray:
+    """Duration (n,) of each move under the axis limits of ``feeds`` (the module docstring's model).
+
+    machine : (n, 5) X, Y, Z (mm), B, C (deg) at the end of each move; planned_s : (n,) nominal durations
+    (length / programmed speed, at least rotary change / rotary speed). Every move that turns an axis or
+    has a planned duration takes at least ``feeds.min_move_s``.
+    """
+    return _schedule(machine, planned_s, feeds)[0]
+
+
+def program_time(program: TimedProgram) -> dict[str, float | int]:
+    """Print time of a program under its profile's axis limits.
+
+    Returns ``estimated_print_time_s`` (trapezoidal moves, ``move_times``), ``nominal_print_time_s`` (sum
+    of the planned durations), ``n_moves_below_min_s`` (planned moves shorter than ``feeds.min_move_s``)
+    and ``accel_limited_fraction``: the share of the estimated time that acceleration adds to the moves
+    run at their (velocity- and min_move_s-limited) cruise rate throughout.
+    """
+    feeds = program.profile.feeds
+    planned = np.asarray(program.time_s, np.float64)
+    times, cruise_t = _schedule(program.machine, planned, feeds)
+    total = float(times.sum())
+    return {
+        "estimated_print_time_s": total,
+        "nominal_print_time_s": float(planned.sum()),
+        "n_moves_below_min_s": int(np.count_nonzero((planned > 0) & (planned < feeds.min_move_s))),
+        "accel_limited_fraction": float(max(total - cruise_t.sum(), 0.0) / total) if total > 0 else 0.0,
+    }
