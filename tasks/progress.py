@@ -84,7 +84,8 @@ class Progress:
         info = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in fields.items())
         self._bar.update(self._task, completed=done, total=self.total, info=info)
         now = time.perf_counter()
-        if done / self.total >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
+        first = self._next_fraction == 0.1 and self._last_line == self._start   # the first update: where it starts
+        if first or done / self.total >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
             rate = done / max(now - self._start, 1e-9)
             left = f", at most {(self.total - done) / rate:.0f} s left" if 0 < done < self.total else ""
             line = f"{self.description}: {done}/{self.total} ({rate:.3g}/s, {now - self._start:.0f} s{left}) {info}"

@@ -335,3 +335,28 @@ def test_safe_end_adds_no_move_where_the_program_already_ends_there(curved):
     n_start = int(np.argmax(out.source >= 0)) - 2          # start moves before the approach and the prime
     assert len(out) == len(prog) + n_start + 2             # + prime + retract, no end moves
     assert len(out.time_s) == len(out.machine) == len(out.kind) == len(out.layer)
+
+
+@pytest.mark.parametrize("profile_name", ["table_bc_linuxcnc", "reprap_5axis"])
+def test_the_written_program_starts_and_ends_safely(tmp_path, curved, profile_name):
+    """Walk the parsed G-code: first motion at the safe height with B = C = 0 there, rotary axes turned
+    before the tool comes down, filament primed before the first printing move; at the end a retract, a lift
+    to the safe height, B home and C on a whole turn."""
+    tp, _, _ = curved
+    profile = load_profile(profile_name).model_copy(deep=True)
+    profile.kinematics.pivot = (5.0, -7.0, 60.0)
+    prog = plan_motion(tp, profile, platform_z=0.0)
+    moves = parse_gcode(write_gcode(tmp_path / "p.gcode", prog))
+    lx, ly, lz, lb, lc, le = prog.axis_letters
+    z, b, c, e = (moves.axes[k] for k in (lz, lb, lc, le))
+    z_safe = prog.attrs["safe_z"]
+    assert z[0] == pytest.approx(z_safe, abs=1e-3) and b[0] == 0.0 and c[0] % 360.0 == pytest.approx(0.0, abs=1e-4)
+    down = int(np.argmax(z < z_safe - 1e-3))                       # the first move below the safe height
+    assert np.allclose([b[down - 1], c[down - 1]], [b[down], c[down]], atol=1e-4)   # turned up there first
+    prime = int(np.argmax(np.diff(e) > 1e-6)) + 1                  # the first filament push: a prime in place
+    xyz = np.column_stack([moves.axes[lx], moves.axes[ly], z])
+    assert prime > down and np.allclose(xyz[prime], xyz[prime - 1]) and e[prime] == pytest.approx(profile.extrusion.prime_mm)
+    last_print = len(e) - 1 - int(np.argmax(np.diff(e)[::-1] > 1e-6))
+    assert e[last_print + 1] < e[last_print]                       # retract after the last printing move
+    assert np.all(z[last_print + 2:] >= z_safe - 1e-3)             # then only at the safe height
+    assert b[-1] == pytest.approx(0.0) and c[-1] % 360.0 == pytest.approx(0.0, abs=1e-4)
