@@ -216,7 +216,7 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
     plot_layer_toolpaths(figs / "layer_toolpaths.png", tp)
     figures["Toolpaths of representative layers"] = "figures/layer_toolpaths.png"
     plot_thickness_map(figs / "bead_thickness.png", tp.xyz, tp.thickness, tp.extrude,
-                       run.program.profile.nozzle.bead_thickness_mm)
+                       run.program.profile.nozzle.bead_thickness_mm, gaps=run.print_metrics.get("beads"))
     figures["Bead thickness"] = "figures/bead_thickness.png"
     plot_collision_map(figs / "collisions.png", run.collision_maps)
     figures["Print head collisions (red)"] = "figures/collisions.png"

@@ -220,11 +220,14 @@ def plot_overhang_map(path: Path, points: np.ndarray, normals: np.ndarray, lpd_b
 
 
 def plot_thickness_map(path: Path, xyz: np.ndarray, thickness: np.ndarray, extrude: np.ndarray,
-                       bead_range: tuple[float, float], max_points: int = 40_000) -> dict[str, float]:
+                       bead_range: tuple[float, float], max_points: int = 40_000, gaps: dict | None = None
+                       ) -> dict[str, float]:
     """Extruding waypoints coloured by bead thickness (3D) beside a histogram with the nozzle's bead range.
 
     xyz : (n, 3) float waypoints; thickness : (n,) float local layer thickness (mm); extrude : (n,) bool
-    bead_range : (min, max) bead thickness the nozzle can lay (mm)
+    bead_range : (min, max) bead thickness the nozzle can lay (mm); gaps : the bead summary of the print
+    (``toolpath.beads``): the gaps to the layer below as the layers leave them, drawn as a second histogram
+    and named in the title (the printed beads are inside the range once thin gaps are carried up).
     Returns the fractions of extruding waypoints below, above and outside the range, and their count.
     """
     lo, hi = float(bead_range[0]), float(bead_range[1])
@@ -251,14 +254,21 @@ def plot_thickness_map(path: Path, xyz: np.ndarray, thickness: np.ndarray, extru
     if len(t):
         top = max(float(t.max()), hi) * 1.05
         hx.hist(t, bins=np.linspace(min(float(t.min()), lo, 0.0), top, 81), color="tab:gray")
+    if gaps is not None and gaps.get("hist_counts"):
+        hx.stairs(np.asarray(gaps["hist_counts"]), np.asarray(gaps["hist_edges_mm"]), color="tab:blue",
+                  label="gap to the layer below (as sliced)")
     hx.axvline(lo, color="magenta", linestyle="--", label=f"bead min {lo:g} mm")
     hx.axvline(hi, color="red", linestyle="--", label=f"bead max {hi:g} mm")
     hx.set_xlabel("bead thickness (mm)")
     hx.set_yscale("log")
     hx.set_ylabel("extruding waypoints (log)")
     hx.legend()
-    hx.set_title(f"{100 * stats['outside']:.2f} % outside the bead range "
-                 f"({100 * stats['below']:.2f} % thinner, {100 * stats['above']:.2f} % thicker)", fontsize=10)
+    title = (f"printed beads: {100 * stats['outside']:.2f} % outside the bead range "
+             f"({100 * stats['below']:.2f} % thinner, {100 * stats['above']:.2f} % thicker)")
+    if gaps is not None:
+        title = (f"gaps as sliced: {100 * gaps['fraction_outside_range']:.2f} % outside ({100 * gaps['fraction_thin']:.2f} % "
+                 f"thinner, carried up; {100 * gaps['fraction_thick']:.2f} % thicker, capped)\n{title}")
+    hx.set_title(title, fontsize=10)
     _save(fig, path)
     return stats
 

@@ -14,6 +14,7 @@ from neuralslicer.outputs import draw_figures
 from neuralslicer.report import (_layer_frame, offscreen_rendering_available, plot_layer_toolpaths, plot_layers_3d,
                                  plot_overhang_map, plot_thickness_map, representative_layers)
 from neuralslicer.samples import SurfaceSamples
+from neuralslicer.toolpath.beads import bead_summary
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, planar_stack
 from neuralslicer.toolpath.types import Toolpaths
@@ -156,7 +157,8 @@ def test_draw_figures_embeds_the_operator_pictures(tmp_path: Path, cap_toolpaths
     run = SimpleNamespace(
         samples=samples, lpd_b=normals, layers=SimpleNamespace(meshes=cap_stack(6, 0.5, 6.0, 35.0, 4)),
         toolpaths=tp, program=SimpleNamespace(profile=SimpleNamespace(nozzle=nozzle)), stress=None, verify=None,
-        field_history={}, collision_maps={"printed": (tp.xyz, np.zeros(len(tp), bool))})
+        field_history={}, collision_maps={"printed": (tp.xyz, np.zeros(len(tp), bool))},
+        print_metrics={"beads": bead_summary(tp, nozzle.bead_thickness_mm)})
     figures = draw_figures(tmp_path / "figures", run, 45.0, 30.0)
     for caption in ("Overhang map (planar vs computed)", "Bead thickness", "Toolpaths of representative layers"):
         assert caption in figures

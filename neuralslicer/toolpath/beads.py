@@ -69,7 +69,7 @@ def _summary(gap: np.ndarray, printing: np.ndarray, extrude: np.ndarray, carried
     """Fractions of the printing waypoints (n,) whose gap lies outside [lo, hi], counts, the gap histogram."""
     n_print = int(printing.sum())
     thin, thick = printing & (gap < lo), printing & (gap > hi)
-    counts, edges = np.histogram(np.clip(gap[printing], 0.0, None), bins=40,
+    counts, edges = np.histogram(np.clip(gap[printing], 0.0, None), bins=80,
                                  range=(0.0, max(1.5 * hi, float(gap[printing].max(initial=0.0)))))
     return {
         "thickness_range_mm": [float(lo), float(hi)], "n_extruding": n_print,
