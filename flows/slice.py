@@ -146,7 +146,8 @@ def slice_pipeline(
         field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine,
                                                                  attempts)
     if config.verify:
-        verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref)
+        printed = None if config.verify_tangents == "ideal" else printing
+        verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref, printing=printed)
     log.run(
         export_task, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,

@@ -49,6 +49,9 @@ class SliceConfig(BaseModel):
     collision_blend_steps: int = Field(
         5, ge=1, le=8, description="bisection steps of the planar blend (t to within 2^-steps)")
     verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
+    verify_tangents: Literal["printed", "ideal"] = Field(
+        "printed", description="stiff material axis of the computed layers in --verify: the printed toolpaths' "
+        "direction, or the ideal one (tau_max projected onto the layer, a best case)")
 
     def objectives_for(self, spec: ModelSpec) -> list[str]:
         """The objectives asked for, or the default: sf, po, gc with the ca constraint, plus sr when the

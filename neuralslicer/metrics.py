@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
 
 
 def support_angles(normals: np.ndarray, lpd: np.ndarray) -> np.ndarray:
@@ -30,3 +32,25 @@ def strength_satisfaction(tau: np.ndarray, volumes: np.ndarray, lpd: np.ndarray,
     sat = np.abs(np.einsum("ij,ij->i", tau[ok], lpd[ok])) <= np.sin(np.radians(beta_deg))
     total = volumes[ok].sum()
     return float(volumes[ok][sat].sum() / total) if total > 0 else 0.0
+
+
+def heldout_surface_samples(surface: trimesh.Trimesh, n: int, platform_z: float, seed: int = 1_000_003
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A sample set the optimiser never saw: ``n`` area-uniform points on the model's surface mesh (not on the
+    implicit solid B was drawn from), with their face normals, equal area weights and platform flags (on the
+    platform plane within 1e-3 of the bounding-box diagonal, normal pointing down): (points, normals, areas,
+    on_platform)."""
+    points, faces = trimesh.sample.sample_surface(surface, n, seed=seed)
+    normals = np.asarray(surface.face_normals[faces], np.float64)
+    tol = 1e-3 * float(np.linalg.norm(surface.extents))
+    on_platform = (np.abs(points[:, 2] - platform_z) <= tol) & (normals[:, 2] < -0.9)
+    return np.asarray(points, np.float64), normals, np.full(len(points), surface.area / max(n, 1)), on_platform
+
+
+def layer_lpd_at(layers: list[trimesh.Trimesh], points: np.ndarray) -> np.ndarray:
+    """The print direction the exported layers give at points (n, 3): the LPD (vertex normal) of the nearest
+    layer vertex, unit."""
+    verts = np.concatenate([np.asarray(m.vertices, np.float64) for m in layers])
+    lpd = np.concatenate([np.asarray(m.vertex_attributes["lpd"], np.float64) for m in layers])
+    d = lpd[cKDTree(verts).query(np.asarray(points, np.float64))[1]]
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)

@@ -24,7 +24,8 @@ from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomi
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
 from neuralslicer.layers import Layers
-from neuralslicer.metrics import overhang_area_fraction, strength_angles, strength_satisfaction, support_angles
+from neuralslicer.metrics import (heldout_surface_samples, layer_lpd_at, overhang_area_fraction, strength_angles,
+                                  strength_satisfaction, support_angles)
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
                                  plot_layers_3d, plot_learning_curves, plot_overhang_map, plot_strain_histogram,
@@ -142,6 +143,19 @@ def collision_table(rows: list[dict], alpha_deg: float) -> str:
     return "\n".join(lines)
 
 
+def heldout_overhang(run: RunResults, alpha_deg: float) -> dict[str, float]:
+    """Overhang area fractions on held-out samples of the model's surface mesh (as many as B, drawn apart from
+    it): with the field's LPD, with the exported layers' own normals, and planar (``sf.heldout.*``)."""
+    if not run.layers.meshes:
+        return {}
+    platform_z = float(run.program.attrs.get("platform_z", run.surface.bounds[0, 2]))
+    pts, normals, areas, on_platform = heldout_surface_samples(run.surface, len(run.samples.points), platform_z)
+    lpd = {"": run.field.sample(pts)[1], "_layers": layer_lpd_at(run.layers.meshes, pts),
+           "_planar": np.tile(PLANAR, (len(pts), 1))}
+    return {f"sf.heldout.overhang_area_fraction{k}": overhang_area_fraction(normals, areas, on_platform, d, alpha_deg)
+            for k, d in lpd.items()}
+
+
 def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, Any]:
     """metrics.json: the model, cage, field, layers, support-free and strength figures, print metrics."""
     B, fa, lpd = run.samples, run.field.info, run.lpd_b
@@ -157,6 +171,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
         "field.kind": fa.get("kind", "neural"), "field.objectives": ",".join(fa.get("objectives", [])),
         "field.steps": fa.get("steps", 0), "field.blend_planar": fa.get("blend_planar", 0.0),
     }
+    metrics.update(heldout_overhang(run, alpha_deg))
     metrics.update({f"layers.{k}": v for k, v in run.layers.report.items()})
     metrics.update({f"loss.{k}": v for k, v in (fa.get("final") or {}).items()})
     metrics.update({f"wall_s.{k}": v for k, v in run.wall_s.items()})
@@ -167,7 +182,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
         metrics["sr.satisfied_fraction_planar"] = strength_satisfaction(
             T.tau_max, T.volumes, np.tile(PLANAR, (len(T.points), 1)), beta_deg)
     if run.verify is not None:
-        metrics.update({f"fea.{k}": v for k, v in run.verify[1].items() if k.startswith("max_strain")})
+        metrics.update({f"fea.{k}": v for k, v in run.verify[1].items() if k.startswith(("max_strain", "tangent"))})
     metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
     metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
@@ -206,7 +221,9 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
         strains = run.verify[0]
         plot_strain_histogram(figs / "strain_histogram.png", {"planar": strains["strain_planar"],
                                                              "computed": strains["strain"]})
-        figures["Strain of the printed part (transversely isotropic FEA)"] = "figures/strain_histogram.png"
+        how = run.verify[1].get("tangent", "ideal: tau_max projected onto the layer")
+        figures[f"Strain of the printed part (transversely isotropic FEA; filaments of the computed layers: {how}; "
+                "planar: ideal, its best case)"] = "figures/strain_histogram.png"
     if run.field_history:
         plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
         figures["Learning curves"] = "figures/learning_curves.png"

@@ -27,7 +27,7 @@ STEP_VERSIONS = {
     "field_blend": "1",
     "layers": "5",
     "toolpaths": "6",
-    "verify": "1",
+    "verify": "2",
     "export": "3",
 }
 

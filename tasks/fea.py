@@ -7,7 +7,7 @@ from prefect import get_run_logger
 from neuralslicer.fea import run_fea, stress_samples
 from neuralslicer.fea.verify import verify_field
 from storage import ArtifactRef
-from tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_solid
+from tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_print, read_solid
 from tasks.common import pipeline_task
 
 
@@ -27,6 +27,9 @@ def stress_samples_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: A
 
 @pipeline_task("verify")
 def verify_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef,
-                field: ArtifactRef) -> tuple[dict, dict]:
-    """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic)."""
-    return verify_field(read_solid(model), read_fea_spec(model), read_field(read_cage(cage), field), read_fea(fea))
+                field: ArtifactRef, printing: ArtifactRef | None = None) -> tuple[dict, dict]:
+    """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic),
+    the filaments of the computed part along its printed toolpaths (``printing``; the ideal direction without)."""
+    toolpaths = read_print(printing)[0] if printing is not None else None
+    return verify_field(read_solid(model), read_fea_spec(model), read_field(read_cage(cage), field), read_fea(fea),
+                        toolpaths=toolpaths)

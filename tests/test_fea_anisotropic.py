@@ -79,3 +79,55 @@ def test_material_frames_orthonormal_and_fallback() -> None:
     assert np.allclose(R[0, :, 0], [2 ** -0.5, 2 ** -0.5, 0])
     assert np.allclose(R[1, :, 0], [1, 0, 0])            # x axis projected
     assert np.allclose(R[2, :, 0], [0, 1, 0])            # x degenerate too: y axis
+
+
+def _lines_along_y(n_lines: int = 20):
+    """Printed lines along +y across the 40 x 10 x 10 bar (one path per line, on five heights)."""
+    from neuralslicer.toolpath.types import Toolpaths
+
+    rows = []
+    for z in np.linspace(1.0, 9.0, 5):
+        for x in np.linspace(1.0, 39.0, n_lines):
+            y = np.linspace(0.5, 9.5, 10)
+            rows.append(np.column_stack([np.full_like(y, x), y, np.full_like(y, z)]))
+    xyz = np.concatenate(rows)
+    n, k = len(xyz), len(rows)
+    return Toolpaths(layer=np.repeat(np.arange(k) // n_lines, 10), path=np.repeat(np.arange(k), 10), xyz=xyz,
+                     axis=np.tile([0.0, 0.0, 1.0], (n, 1)), thickness=np.full(n, 2.0), width=np.full(n, 2.0),
+                     extrude=np.tile(np.r_[False, np.ones(9, bool)], k))
+
+
+def test_printed_toolpaths_set_the_stiff_axis_where_the_ideal_one_would_flatter() -> None:
+    """An x-loaded bar printed with lines along y is as weak as Y2 says, though tau_max lies along x: the
+    verification on printed tangents and the ideal one differ by Y1 / Y2."""
+    from neuralslicer.fea.verify import printed_tangents
+
+    tp = _lines_along_y()
+    tangent_at = printed_tangents(tp)
+    probe = np.array([[5.0, 5.0, 5.0], [20.0, 2.0, 8.0]])
+    assert np.allclose(tangent_at(probe), [[0.0, 1.0, 0.0]] * 2)
+    solid, spec = BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec()
+    printed = verify_layers(solid, spec, _const((0, 0, 1)), tangent_at=tangent_at)
+    ideal = verify_layers(solid, spec, _const((0, 0, 1)))
+    assert printed["tangent"] == "given" and ideal["tangent"].startswith("tau_max")
+    assert printed["max_strain"] == pytest.approx(SIGMA / Y2, rel=0.02)
+    assert ideal["max_strain"] == pytest.approx(SIGMA / Y1, rel=0.02)
+
+
+def test_verify_field_labels_its_tangents() -> None:
+    """verify_field says which stiff axis each part got: printed toolpaths for the field, ideal for planar."""
+    from scipy.spatial import Delaunay
+
+    from neuralslicer.fea.verify import verify_field
+    from neuralslicer.scalar_field import ScalarField
+
+    g = np.stack(np.meshgrid(np.linspace(-1, 41, 8), np.linspace(-1, 11, 4), np.linspace(-1, 11, 4), indexing="ij"), -1)
+    verts = g.reshape(-1, 3) + np.random.default_rng(0).normal(scale=1e-3, size=(g.size // 3, 3))   # no flat tets
+    field = ScalarField(verts, Delaunay(verts).simplices.astype(np.int64), verts[:, 2].copy())
+    solid, spec = BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec()
+    strains, figures = verify_field(solid, spec, field, toolpaths=_lines_along_y())
+    assert figures["tangent"] == "printed toolpaths" and "best case for planar" in figures["tangent_planar"]
+    assert figures["max_strain"] == pytest.approx(SIGMA / Y2, rel=0.02)          # printed across the load
+    assert figures["max_strain_planar"] == pytest.approx(SIGMA / Y1, rel=0.02)   # planar at its best
+    _, ideal = verify_field(solid, spec, field)
+    assert ideal["tangent"].startswith("ideal") and ideal["max_strain"] == pytest.approx(SIGMA / Y1, rel=0.02)

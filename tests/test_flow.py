@@ -55,6 +55,10 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
         assert key in metrics, key
     # the identity field gives planar layers: the same overhang as planar, layers at increasing heights
     assert metrics["sf.overhang_area_fraction"] == pytest.approx(metrics["sf.overhang_area_fraction_planar"])
+    # held out (the surface mesh, apart from B): the field's, the layers' and planar overhang agree as well
+    held = [metrics[f"sf.heldout.overhang_area_fraction{k}"] for k in ("", "_layers", "_planar")]
+    assert held[0] == pytest.approx(held[2], abs=1e-9) and held[1] == pytest.approx(held[2], abs=0.01)
+    assert held[2] == pytest.approx(metrics["sf.overhang_area_fraction_planar"], abs=0.02)
     # the arm's underside (12 x 10 mm² of the 992 mm² of surface off the platform) overhangs
     assert metrics["sf.overhang_area_fraction_planar"] == pytest.approx(120 / 992, rel=0.1)
     z = [trimesh.load(p).vertices[:, 2].mean() for p in layers]

@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from neuralslicer.errors import InputError
 from neuralslicer.fea.element import rotate_D, transversely_isotropic_D
@@ -20,6 +21,7 @@ from neuralslicer.fea.grid import SolidLike, voxelize
 from neuralslicer.fea.solver import FEAResult, run_fea, solve_on_grid
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.scalar_field import ScalarField
+from neuralslicer.toolpath.types import Toolpaths
 
 DirectionField = Callable[[np.ndarray], np.ndarray]
 
@@ -98,10 +100,33 @@ def verify_layers(solid: SolidLike, fea_spec: FEASpec, lpd_at: DirectionField,
             "centres": res.grid.centres, "tangent": tangent_rule, "result": res}
 
 
-def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, reference: FEAResult | None = None
-                 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+def printed_tangents(tp: Toolpaths) -> DirectionField:
+    """``tangent_at`` for :func:`verify_layers`: the direction of the printed (extruding) move whose midpoint
+    is nearest each point, so the stiff material axis is the filament actually laid there."""
+    ext = np.flatnonzero(tp.extrude[1:]) + 1
+    d = tp.xyz[ext] - tp.xyz[ext - 1]
+    keep = np.linalg.norm(d, axis=1) > 1e-9
+    ext, d = ext[keep], d[keep]
+    if not len(ext):
+        raise InputError("toolpaths", "no printed move to take the filament directions from")
+    tree = cKDTree(0.5 * (tp.xyz[ext] + tp.xyz[ext - 1]))
+
+    def tangent_at(points: np.ndarray) -> np.ndarray:
+        """Direction (n, 3) of the nearest printed move."""
+        return d[tree.query(np.asarray(points, np.float64).reshape(-1, 3))[1]]
+
+    return tangent_at
+
+
+def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, reference: FEAResult | None = None,
+                 toolpaths: Toolpaths | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Strain of the part printed with planar layers and with the layers of ``field`` (its LPD; planar
-    where a voxel centre lies outside the cage): per-voxel strains and their maxima and 99th percentiles."""
+    where a voxel centre lies outside the cage): per-voxel strains and their maxima and 99th percentiles.
+
+    With ``toolpaths`` (the program printed from the field) the curved part's stiff axis is the direction of
+    the filament laid nearest each voxel; without, it is the ideal one, tau_max projected onto the layer.
+    The planar part always gets the ideal one (no planar toolpaths are made): a best case for planar, so the
+    comparison never flatters the curved layers. ``tangent`` / ``tangent_planar`` in the figures say which."""
 
     def lpd_at(points: np.ndarray) -> np.ndarray:
         """LPD of the field, +z outside the cage."""
@@ -110,8 +135,11 @@ def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, refere
         return d
 
     planar = verify_layers(solid, fea_spec, lambda p: np.tile([0.0, 0.0, 1.0], (len(p), 1)), reference=reference)
-    curved = verify_layers(solid, fea_spec, lpd_at, reference=reference)
+    tangent_at = printed_tangents(toolpaths) if toolpaths is not None else None
+    curved = verify_layers(solid, fea_spec, lpd_at, tangent_at=tangent_at, reference=reference)
     return {"strain_planar": planar["strain"], "strain": curved["strain"], "centres": curved["centres"]}, {
         "max_strain_planar": planar["max_strain"], "max_strain": curved["max_strain"],
         "max_strain_p99_planar": planar["max_strain_p99"], "max_strain_p99": curved["max_strain_p99"],
+        "tangent": "printed toolpaths" if tangent_at is not None else "ideal: tau_max projected onto the layer",
+        "tangent_planar": "ideal: tau_max projected onto the layer (best case for planar)",
     }
