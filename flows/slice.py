@@ -147,7 +147,8 @@ def slice_pipeline(
                                                                  attempts)
     if config.verify:
         printed = None if config.verify_tangents == "ideal" else printing
-        verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref, printing=printed)
+        verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref, printing=printed,
+                         layer_config=config.layers, toolpath_config=config.toolpath)
     log.run(
         export_task, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,

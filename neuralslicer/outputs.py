@@ -222,8 +222,7 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
         plot_strain_histogram(figs / "strain_histogram.png", {"planar": strains["strain_planar"],
                                                              "computed": strains["strain"]})
         how = run.verify[1].get("tangent", "ideal: tau_max projected onto the layer")
-        figures[f"Strain of the printed part (transversely isotropic FEA; filaments of the computed layers: {how}; "
-                "planar: ideal, its best case)"] = "figures/strain_histogram.png"
+        figures[f"Strain of the printed part (transversely isotropic FEA; filaments: {how})"] = "figures/strain_histogram.png"
     if run.field_history:
         plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
         figures["Learning curves"] = "figures/learning_curves.png"

@@ -5,7 +5,9 @@ import numpy as np
 from prefect import get_run_logger
 
 from neuralslicer.fea import run_fea, stress_samples
-from neuralslicer.fea.verify import verify_field
+from neuralslicer.fea.verify import verify_field, verify_print
+from neuralslicer.layers import LayerConfig
+from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
 from tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_print, read_solid
 from tasks.common import pipeline_task
@@ -27,9 +29,13 @@ def stress_samples_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: A
 
 @pipeline_task("verify")
 def verify_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef,
-                field: ArtifactRef, printing: ArtifactRef | None = None) -> tuple[dict, dict]:
-    """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic),
-    the filaments of the computed part along its printed toolpaths (``printing``; the ideal direction without)."""
-    toolpaths = read_print(printing)[0] if printing is not None else None
-    return verify_field(read_solid(model), read_fea_spec(model), read_field(read_cage(cage), field), read_fea(fea),
-                        toolpaths=toolpaths)
+                field: ArtifactRef, printing: ArtifactRef | None = None, layer_config: LayerConfig | None = None,
+                toolpath_config: ToolpathConfig | None = None) -> tuple[dict, dict]:
+    """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic).
+    With ``printing`` the filaments lie along the printed toolpaths: the computed layers' own, and toolpaths of
+    planar layers made here with the same settings; without, along the ideal direction for both."""
+    solid, computed = read_solid(model), read_field(read_cage(cage), field)
+    if printing is None:
+        return verify_field(solid, read_fea_spec(model), computed, read_fea(fea))
+    return verify_print(solid, read_fea_spec(model), computed, read_print(printing)[0], layer_config, toolpath_config,
+                        read_fea(fea))

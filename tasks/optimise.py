@@ -11,10 +11,10 @@ from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.optimise import optimise_for_solid
 from neuralslicer.samples import SurfaceSamples
 from storage import ArtifactRef, ArtifactStore
-from tasks.progress import Progress
+from tasks.progress import Progress, say
 
 KEEP_CHECKPOINTS = 2
-PROGRESS_TERMS = ("total", "sf", "po", "sr", "gc", "lr")
+PROGRESS_TERMS = ("total", "sf", "po", "sr", "gc", "lr", "overhang", "overhang_target", "head_hits")
 
 
 class StoreCheckpoints:
@@ -46,6 +46,11 @@ def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stre
                      user_field_points: np.ndarray | None = None) -> tuple[dict, dict]:
     """The field step with store checkpoints and a progress bar; arrays and attrs to store."""
     checkpoints = StoreCheckpoints(ArtifactStore(out.store), f"{out.model}/checkpoints/{out.digest}")
+    oc = config.optim
+    if oc.target_overhang > 0 and "sr" not in objectives:
+        say(f"optimise: stops once the overhang is at most {oc.target_overhang:g} of B (then {oc.target_overhang_late:g} "
+            f"from step {oc.late_after}), no pool point's head hits earlier material and L_CA = 0, checked every "
+            f"{oc.check_every} steps; else after {oc.max_steps} steps or when the loss stalls")
     with Progress("optimise", total=config.optim.max_steps) as bar:
         result = optimise_for_solid(
             solid, cage.vertices, cage.tets, samples, stress, objectives, config, user_field=user_field,

@@ -20,7 +20,11 @@ from neuralslicer.fea.element import rotate_D, transversely_isotropic_D
 from neuralslicer.fea.grid import SolidLike, voxelize
 from neuralslicer.fea.solver import FEAResult, run_fea, solve_on_grid
 from neuralslicer.fea.spec import FEASpec
+from neuralslicer.layers import LayerConfig, slice_layers
+from neuralslicer.model.solid import Solid
 from neuralslicer.scalar_field import ScalarField
+from neuralslicer.toolpath.config import ToolpathConfig
+from neuralslicer.toolpath.generate import toolpaths as make_toolpaths
 from neuralslicer.toolpath.types import Toolpaths
 
 DirectionField = Callable[[np.ndarray], np.ndarray]
@@ -119,14 +123,15 @@ def printed_tangents(tp: Toolpaths) -> DirectionField:
 
 
 def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, reference: FEAResult | None = None,
-                 toolpaths: Toolpaths | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+                 toolpaths: Toolpaths | None = None, planar_toolpaths: Toolpaths | None = None
+                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Strain of the part printed with planar layers and with the layers of ``field`` (its LPD; planar
     where a voxel centre lies outside the cage): per-voxel strains and their maxima and 99th percentiles.
 
     With ``toolpaths`` (the program printed from the field) the curved part's stiff axis is the direction of
-    the filament laid nearest each voxel; without, it is the ideal one, tau_max projected onto the layer.
-    The planar part always gets the ideal one (no planar toolpaths are made): a best case for planar, so the
-    comparison never flatters the curved layers. ``tangent`` / ``tangent_planar`` in the figures say which."""
+    the filament laid nearest each voxel, and with ``planar_toolpaths`` (toolpaths of planar layers on the same
+    part) the planar part's; without, the ideal one, tau_max projected onto the layer (a best case).
+    ``tangent`` / ``tangent_planar`` in the figures say which."""
 
     def lpd_at(points: np.ndarray) -> np.ndarray:
         """LPD of the field, +z outside the cage."""
@@ -134,12 +139,27 @@ def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, refere
         d[~np.all(np.isfinite(d), axis=1)] = [0.0, 0.0, 1.0]
         return d
 
-    planar = verify_layers(solid, fea_spec, lambda p: np.tile([0.0, 0.0, 1.0], (len(p), 1)), reference=reference)
+    planar_tangent_at = printed_tangents(planar_toolpaths) if planar_toolpaths is not None else None
+    planar = verify_layers(solid, fea_spec, lambda p: np.tile([0.0, 0.0, 1.0], (len(p), 1)),
+                           tangent_at=planar_tangent_at, reference=reference)
     tangent_at = printed_tangents(toolpaths) if toolpaths is not None else None
     curved = verify_layers(solid, fea_spec, lpd_at, tangent_at=tangent_at, reference=reference)
     return {"strain_planar": planar["strain"], "strain": curved["strain"], "centres": curved["centres"]}, {
         "max_strain_planar": planar["max_strain"], "max_strain": curved["max_strain"],
         "max_strain_p99_planar": planar["max_strain_p99"], "max_strain_p99": curved["max_strain_p99"],
         "tangent": "printed toolpaths" if tangent_at is not None else "ideal: tau_max projected onto the layer",
-        "tangent_planar": "ideal: tau_max projected onto the layer (best case for planar)",
+        "tangent_planar": ("printed toolpaths" if planar_tangent_at is not None
+                           else "ideal: tau_max projected onto the layer (best case for planar)"),
     }
+
+
+def verify_print(solid: Solid, fea_spec: FEASpec, field: ScalarField, toolpaths: Toolpaths,
+                 layer_config: LayerConfig | None = None, toolpath_config: ToolpathConfig | None = None,
+                 reference: FEAResult | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """:func:`verify_field` on what is printed: the computed layers' toolpaths, and toolpaths of planar layers
+    of the same part made here with the same layer and toolpath settings (a like-for-like planar baseline)."""
+    lc = layer_config or LayerConfig()
+    flat = slice_layers(solid, field.blend(1.0), lc)
+    planar = make_toolpaths(flat.meshes, platform_z=solid.platform_z, config=toolpath_config, t_max=lc.t_max)
+    strains, figures = verify_field(solid, fea_spec, field, reference, toolpaths=toolpaths, planar_toolpaths=planar)
+    return strains, {**figures, "n_planar_layers": len(flat.meshes), "n_planar_waypoints": len(planar)}

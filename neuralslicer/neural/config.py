@@ -173,8 +173,13 @@ class OptimConfig(BaseModel):
     target_overhang: float = Field(
         1e-3, ge=0,
         description="converged once the overhang area fraction of B is at most this, no pool point's head "
-        "(grown by half the L_GC clearance) reaches earlier material or the platform, and the corrected step "
-        "has L_CA = 0: the constraints are met (0: off; not with a strength objective, which has no such state)")
+        "(grown by stop_head_growth x the L_GC clearance) reaches earlier material or the platform, and the "
+        "corrected step has L_CA = 0: the constraints are met (0: off; not with a strength objective, which has "
+        "no such state)")
+    stop_head_growth: float = Field(
+        0.0, ge=0,
+        description="the head of the constraint stop grown by this fraction of the L_GC clearance (0: the "
+        "machine's head itself; the loss keeps its full clearance, and the toolpaths' exact check stays the judge)")
     target_overhang_late: float = Field(
         1e-2, ge=0,
         description="from step late_after on, the constraint stop accepts this overhang fraction instead (still "

@@ -390,7 +390,7 @@ def run_loop(problem: FieldProblem, st: LoopState, save: Callable[[], None], pro
         if progress is not None:
             info = {k: st.history[k][-1] for k in st.history}
             info.update(elapsed_s=time.perf_counter() - t0, phase="optimise", ca_violating_pairs=n_viol,
-                        best=st.best[-1], rollbacks=st.rollbacks)
+                        best=st.best[-1], rollbacks=st.rollbacks, **problem.last_check)
             progress(st.step, info)
         if st.step % oc.checkpoint_every == 0 and st.step < oc.max_steps and not st.converged:
             save()

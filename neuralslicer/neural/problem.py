@@ -78,6 +78,8 @@ class FieldProblem:
         self.t_tau_t = T(self.t_tau)
         self.t_volumes_t = T(self.t_volumes)
         self.head = self._head_collision(collision_pool)
+        #: what the last constraint check measured (overhang, its target, pool points whose head hits), for progress
+        self.last_check: dict[str, float] = {}
 
     def _head_collision(self, pool: CollisionPool | None) -> HeadCollision | None:
         """L_GC on the pool of solid points (None when its weight is 0); the pool is required then."""
@@ -180,8 +182,8 @@ class FieldProblem:
 
     def constraints_met(self, fields: DeformationFields, step: int = 0) -> bool:
         """Support-free within ``optim.target_overhang`` (area fraction of B; ``target_overhang_late`` from
-        step ``late_after`` on) and no head collision (none in the pool with the head grown by half its
-        clearance); never with a strength objective, which has no satisfied state (always False when
+        step ``late_after`` on) and no head collision (none in the pool with the head grown by
+        ``optim.stop_head_growth`` times its clearance); never with a strength objective, which has no satisfied state (always False when
         target_overhang is 0 or SF is off). L_CA = 0 is the caller's part: the DC3 correction before each
         evaluation reports it."""
         cl, oc = self.config.loss, self.config.optim
@@ -190,9 +192,15 @@ class FieldProblem:
         target = max(oc.target_overhang, oc.target_overhang_late) if step >= oc.late_after else oc.target_overhang
         G, grad = self.field(fields)
         d = unit(grad[self.b_tet_t]).double().cpu().numpy()
-        if overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d, cl.alpha_deg) > target:
+        over = overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d, cl.alpha_deg)
+        self.last_check = {"overhang": over, "overhang_target": target}
+        if over > target:
             return False
-        return self.head is None or not self.head.count(G, grad, 0.5 * self.head.clearance)["colliding_points"]
+        if self.head is None:
+            return True
+        hits = self.head.count(G, grad, oc.stop_head_growth * self.head.clearance)["colliding_points"]
+        self.last_check["head_hits"] = hits
+        return not hits
 
     def planar_lpd_satisfaction(self) -> dict[str, float]:
         """SF/SR satisfaction of planar layers (d = +z)."""
