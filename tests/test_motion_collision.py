@@ -136,3 +136,31 @@ def test_a_colliding_travel_is_lifted_over_the_tower():
     # printing waypoints are untouched, in the same order
     on = out.path >= 0
     assert np.array_equal(out.xyz[on], tp.xyz[tp.path >= 0])
+
+
+def test_cell_classified_holder_test_is_exact_on_a_dense_cloud():
+    """Thousands of material points in few cells (whole cells inside the holder, outside, on its boundary): the
+    hits and their witnesses agree with the brute-force membership test at every pose."""
+    from neuralslicer.motion.collision import _holder_distance
+
+    rng = np.random.default_rng(11)
+    pts = np.vstack([rng.uniform([-30, -30, 15], [30, 30, 25], size=(6000, 3)),   # a dense slab
+                     np.stack(np.meshgrid(*[np.arange(-12.0, 12.1, 1.0)] * 2, [8.0, 20.0], indexing="ij"), -1).reshape(-1, 3)])
+    tips = rng.uniform([-20, -20, -50], [20, 20, 5], size=(300, 3))
+    axes = rng.normal(size=(300, 3)) + [0, 0, 2.0]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    axes[:20] = [0.0, 0.0, 1.0]                       # grid points exactly on the holder's bottom face
+    tips[:20, 2] = 0.0
+    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
+    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    assert np.array_equal(hit, exact) and 20 < hit.sum() < len(hit) - 20
+    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
+        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+    # the signed distance is the exact one of the capped cylinder (checked against its definition)
+    d = rng.uniform(-40, 40, size=(2000, 3))
+    sd = _holder_distance(d, np.tile([0.0, 0.0, 1.0], (2000, 1)), NOZZLE)
+    inside = (d[:, 2] > 8) & (d[:, 2] < 38) & (np.hypot(d[:, 0], d[:, 1]) < 15)
+    assert np.array_equal(sd < 0, inside)
+    r, z = np.hypot(d[:, 0], d[:, 1]), d[:, 2]
+    outside_side = (~inside) & (z > 8) & (z < 38)
+    assert np.allclose(sd[outside_side], r[outside_side] - 15.0)

@@ -69,8 +69,19 @@ def _inside_head(d: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: fl
     radial = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
     L = nozzle.cone_length
     cone = (h >= min_height) & (h <= L) & (radial <= h * np.tan(np.radians(nozzle.cone_half_angle_deg)))
-    holder = (h > L) & (h <= L + nozzle.holder_length) & (radial <= nozzle.holder_radius)
-    return cone | holder
+    return cone | _holder_test(h, radial, nozzle)
+
+
+def _holder_test(h: FloatArray, radial: FloatArray, nozzle: Nozzle) -> BoolArray:
+    """In the holder: above the cone (strictly), up to its top, within its radius."""
+    L = nozzle.cone_length
+    return (h > L) & (h <= L + nozzle.holder_length) & (radial <= nozzle.holder_radius)
+
+
+def _in_holder(d: FloatArray, axis: FloatArray, nozzle: Nozzle) -> BoolArray:
+    """Exact membership of offsets ``d`` (k,3) in the holder along ``axis`` (k,3) (the head's own rule)."""
+    h = np.einsum("ij,ij->i", d, axis)
+    return _holder_test(h, np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0)), nozzle)
 
 
 def _frustum_ball(a: float, b: float, ra: float, rb: float) -> tuple[float, float]:
@@ -79,8 +90,9 @@ def _frustum_ball(a: float, b: float, ra: float, rb: float) -> tuple[float, floa
     return c, float(max(np.hypot(c - a, ra), np.hypot(b - c, rb)))
 
 
-def head_parts(nozzle: Nozzle, min_height: float) -> list[tuple[float, float]]:
-    """(height of the centre on the axis, radius) of balls that together enclose the head above min_height.
+def head_parts(nozzle: Nozzle, min_height: float, holder: bool = True) -> list[tuple[float, float]]:
+    """(height of the centre on the axis, radius) of balls that together enclose the head above min_height
+    (the cone only with ``holder=False``).
 
     The cone frustum and the holder are cut into slabs about as long as they are wide, each in its own
     ball, so the candidate points fetched per pose stay close to the head's volume.
@@ -92,7 +104,7 @@ def head_parts(nozzle: Nozzle, min_height: float) -> list[tuple[float, float]]:
     n_cone = max(1, int(np.ceil((L - h0) / max(2.0 * L * ta, 1e-9))))
     cuts = np.linspace(h0, L, n_cone + 1)
     parts += [_frustum_ball(a, b, a * ta, b * ta) for a, b in zip(cuts[:-1], cuts[1:])]
-    if nozzle.holder_length > 0:
+    if holder and nozzle.holder_length > 0:
         R = nozzle.holder_radius
         n_hold = max(1, int(np.ceil(nozzle.holder_length / max(R, 1e-9))))
         cuts = np.linspace(L, L + nozzle.holder_length, n_hold + 1)
@@ -129,11 +141,49 @@ def platform_clearance(xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, platfo
     return xyz[:, 2] + low - platform_z
 
 
+#: edge (mm) of the cells that stand for the material in the holder test
+CELL_SIZE = 3.0
+
+
+@dataclass
+class _Cells:
+    """Material points binned in cubes of ``CELL_SIZE``: per non-empty cell the centroid, the largest distance
+    of its points from it, and its points (``order[start[c]:start[c] + count[c]]``), with a KD-tree over the
+    centroids. A cell whose bounding ball lies in the holder is a hit, one outside it is skipped, and only the
+    points of cells on the holder's boundary are tested one by one."""
+
+    centroid: FloatArray
+    radius: FloatArray
+    start: IndexArray
+    count: IndexArray
+    order: IndexArray
+    tree: cKDTree
+
+    @classmethod
+    def of(cls, pts: FloatArray, size: float = CELL_SIZE) -> "_Cells":
+        """Cells of points (k, 3)."""
+        key = np.floor(pts / size).astype(np.int64)
+        key -= key.min(axis=0)
+        span = key.max(axis=0) + 1
+        flat = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
+        order = np.argsort(flat, kind="stable")
+        flat_sorted = flat[order]
+        first = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
+        count = np.diff(np.r_[first, len(flat)])
+        cell_of = np.repeat(np.arange(len(first)), count)
+        sorted_pts = pts[order]
+        centroid = np.add.reduceat(sorted_pts, first, axis=0) / count[:, None]
+        dist = np.linalg.norm(sorted_pts - centroid[cell_of], axis=1)
+        return cls(centroid, np.maximum.reduceat(dist, first), first.astype(np.int64), count.astype(np.int64),
+                   order.astype(np.int64), cKDTree(centroid))
+
+
 class _TreeSet:
     """Points added in batches, queried as a union (Bentley-Saxe logarithmic method)."""
 
     def __init__(self) -> None:
         self.blocks: list[tuple[FloatArray, cKDTree]] = []
+        self.cells: list[_Cells] = []
 
     def add(self, pts: FloatArray) -> None:
         """Add a batch of points (k, 3), merging blocks of similar size."""
@@ -141,7 +191,19 @@ class _TreeSet:
             return
         while self.blocks and len(self.blocks[-1][0]) <= len(pts):
             pts = np.concatenate([self.blocks.pop()[0], pts])
+            self.cells.pop()
         self.blocks.append((pts, cKDTree(pts)))
+        self.cells.append(_Cells.of(pts))
+
+
+def _holder_distance(d: FloatArray, axis: FloatArray, nozzle: Nozzle) -> FloatArray:
+    """Signed distance (k,) of offsets ``d = point - tip`` (k, 3) to the holder cylinder along ``axis`` (k, 3)."""
+    h = np.einsum("ij,ij->i", d, axis)
+    radial = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
+    half = 0.5 * nozzle.holder_length
+    dr = radial - nozzle.holder_radius
+    dh = np.abs(h - (nozzle.cone_length + half)) - half
+    return np.minimum(np.maximum(dr, dh), 0.0) + np.hypot(np.maximum(dr, 0.0), np.maximum(dh, 0.0))
 
 
 def earlier_material(tp: Toolpaths, layer: int) -> _TreeSet:
@@ -176,7 +238,9 @@ def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: No
         found = np.isfinite(dist)
         hit[todo[found]] = True
         loc[todo[found]] = pts[near[found]]
-    for pts, tree, centres, rc, todo in _open_queries(material, hit, xyz, axis, head_parts(nozzle, min_height)):
+    if nozzle.holder_length > 0:
+        _holder_hits(material, xyz, axis, nozzle, hit, loc, budget)
+    for pts, tree, centres, rc, todo in _open_queries(material, hit, xyz, axis, head_parts(nozzle, min_height, False)):
         counts = tree.query_ball_point(centres[todo], rc, return_length=True)
         todo, counts = todo[counts > 0], counts[counts > 0]
         # chunks of poses with a bounded number of candidate pairs
@@ -199,6 +263,58 @@ def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: No
             loc[hp[first][new]] = pts[hq[first][new]]
             start = stop
     return hit, loc
+
+
+def _holder_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, hit: BoolArray,
+                 loc: FloatArray, budget: int) -> None:
+    """Mark the poses whose holder cylinder holds material (``hit``/``loc`` updated in place), exactly: cells
+    near the holder are fetched by their centroids, classified by the holder's signed distance against their
+    radius, and only the points of cells on its boundary are tested one by one."""
+    half = 0.5 * nozzle.holder_length
+    centre_h = nozzle.cone_length + half
+    reach = float(np.hypot(half, nozzle.holder_radius))
+    for (pts, _), cells in zip(material.blocks, material.cells):
+        todo = np.flatnonzero(~hit)
+        if not len(todo):
+            return
+        rb = reach + float(cells.radius.max(initial=0.0))
+        centres = xyz[todo] + centre_h * axis[todo]
+        counts = cells.tree.query_ball_point(centres, rb, return_length=True)
+        todo, centres, counts = todo[counts > 0], centres[counts > 0], counts[counts > 0]
+        cells_per_chunk = max(budget // 64, 1)
+        bounds = np.searchsorted(np.cumsum(counts), np.arange(cells_per_chunk, counts.sum() + cells_per_chunk,
+                                                              cells_per_chunk))
+        start = 0
+        for stop in np.unique(np.concatenate([bounds + 1, [len(todo)]])):
+            stop = int(min(max(stop, start + 1), len(todo)))
+            if stop <= start:
+                continue
+            ids = np.arange(start, stop)
+            start = stop
+            lists = cells.tree.query_ball_point(centres[ids], rb, return_sorted=False)
+            n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+            cell = np.fromiter(chain.from_iterable(lists), np.int64, int(n_c.sum()))
+            pose = np.repeat(todo[ids], n_c)
+            sd = _holder_distance(cells.centroid[cell] - xyz[pose], axis[pose], nozzle)
+            full = sd < -cells.radius[cell]
+            where = cells.order[cells.start[cell[full]]]                 # a point of each cell wholly inside
+            first = np.unique(pose[full], return_index=True)[1]
+            hit[pose[full][first]] = True
+            loc[pose[full][first]] = pts[where[first]]
+            edge = (np.abs(sd) <= cells.radius[cell]) & ~hit[pose]
+            if not edge.any():
+                continue
+            e_cell, e_pose = cell[edge], pose[edge]
+            n_p = cells.count[e_cell]
+            offset = np.arange(int(n_p.sum())) - np.repeat(np.cumsum(n_p) - n_p, n_p)
+            point = cells.order[np.repeat(cells.start[e_cell], n_p) + offset]
+            p_pose = np.repeat(e_pose, n_p)
+            inside = _in_holder(pts[point] - xyz[p_pose], axis[p_pose], nozzle)
+            hp, hq = p_pose[inside], point[inside]
+            first = np.unique(hp, return_index=True)[1]
+            new = ~hit[hp[first]]
+            hit[hp[first][new]] = True
+            loc[hp[first][new]] = pts[hq[first][new]]
 
 
 def head_collisions(xyz: FloatArray, axis: FloatArray, material: FloatArray, nozzle: Nozzle,
