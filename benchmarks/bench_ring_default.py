@@ -48,6 +48,11 @@ def one_run(tmp: Path) -> dict:
         "tilt": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("tilt.")},
         "reach": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("reach.")},
         "travel_collisions": m.get("n_travel_collisions"), "load_avg_1min_at_start": load,
+        "overhang_heldout": m.get("sf.heldout.overhang_area_fraction"),
+        "overhang_heldout_layers": m.get("sf.heldout.overhang_area_fraction_layers"),
+        "overhang_heldout_planar": m.get("sf.heldout.overhang_area_fraction_planar"),
+        "beads_outside_range": m.get("beads.fraction_outside_range"),
+        "estimated_print_time_s": m.get("estimated_print_time_s"),
         "prints": prints,
     }
 
@@ -79,7 +84,9 @@ def main(runs: int = 3) -> None:
               f"collisions, {r['fields_printed']} field(s) printed, blend {r['blend_planar']:g}, overhang "
               f"{100 * r['overhang']:.3f} % (planar {100 * r['overhang_planar']:.2f} %), field "
               f"{r['steps_s'].get('field', 0):.0f} s, toolpaths {r['steps_s'].get('toolpaths', 0):.0f} s, tilt {r['tilt']}, "
-              f"reach {r['reach']}, load {r['load_avg_1min_at_start']:.1f}")
+              f"reach {r['reach']}, load {r['load_avg_1min_at_start']:.1f}, held-out overhang "
+              f"{r['overhang_heldout']} (layers {r['overhang_heldout_layers']}, planar {r['overhang_heldout_planar']}), "
+              f"beads outside range {r['beads_outside_range']}")
         for pr in r["prints"]:
             print("   print:", {k: pr[k] for k in ("n_collisions", "n_part_collisions", "n_platform_collisions",
                                                    "n_travel_collisions", "travel_lift", "axis_tilt")})
