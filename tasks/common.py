@@ -3,13 +3,17 @@ from __future__ import annotations
 
 import functools
 import inspect
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, Literal
 
 from prefect import task
 from prefect.context import TaskRunContext
+from prefect.serializers import Serializer
+from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
 from prefect.states import State
 
 from storage import ArtifactRef, ArtifactStore, digest
@@ -71,10 +75,48 @@ class PipelineStep:
         return f"{self.step}-{digest('store', out.store, length=8)}-{out.digest}"
 
 
+class RefSerializer(Serializer):
+    """Task results as JSON: a pipeline task returns an ArtifactRef (three strings), and reading one back builds
+    nothing else, so a cache record planted beside a shared store cannot run code (pickle could)."""
+
+    type: Literal["neuralslicer-ref"] = "neuralslicer-ref"
+
+    def dumps(self, obj: ArtifactRef) -> bytes:
+        """The ref's three fields as JSON."""
+        if not isinstance(obj, ArtifactRef):
+            raise TypeError(f"a pipeline task returns an ArtifactRef, not {type(obj).__name__}")
+        return json.dumps({"store": obj.store, "path": obj.path, "digest": obj.digest}).encode()
+
+    def loads(self, blob: bytes) -> ArtifactRef:
+        """An ArtifactRef from its JSON, refusing anything else."""
+        data = json.loads(blob)
+        if not (isinstance(data, dict) and set(data) == {"store", "path", "digest"}
+                and all(isinstance(v, str) for v in data.values())):
+            raise ValueError("not a neuralslicer task result")
+        return ArtifactRef(**data)
+
+
+def record_is_ours(path: Path) -> bool:
+    """True when the cache record at ``path`` is absent or was written with :class:`RefSerializer` (a record
+    naming another serializer, pickle above all, is never read)."""
+    if not path.exists():
+        return True
+    try:
+        meta = json.loads(path.read_bytes())["metadata"]
+        return meta["serializer"]["type"] == RefSerializer().type
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
 def run_step(task_: Any, **parameters: Any) -> State:
-    """Run a pipeline task; when its output is missing from the store, bypass the cache record (refresh it)."""
+    """Run a pipeline task; when its output is missing from the store, or its cache record is not one this
+    package wrote (not JSON by RefSerializer: never unpickled), bypass the record (the task rewrites it)."""
     step: PipelineStep = task_.pipeline
-    if not step.done(parameters):
+    record = Path(PREFECT_LOCAL_STORAGE_PATH.value()) / step.cache_key(None, parameters)
+    if not record_is_ours(record):
+        say(f"{step.step}: ignoring a cache record not written by neuralslicer ({record}); recomputing the reference")
+        task_ = task_.with_options(refresh_cache=True)
+    elif not step.done(parameters):
         task_ = task_.with_options(refresh_cache=True)
     return task_(**parameters, return_state=True)
 
@@ -116,7 +158,8 @@ def pipeline_task(
 
         body.__signature__ = public  # type: ignore[attr-defined]
         del body.__wrapped__
-        options = {"persist_result": True, "cache_key_fn": pipeline.cache_key, "name": step, **task_options}
+        options = {"persist_result": True, "result_serializer": RefSerializer(), "cache_key_fn": pipeline.cache_key,
+                   "name": step, **task_options}
         pipeline_task_ = task(body, **options)
         pipeline_task_.pipeline = pipeline
         return pipeline_task_

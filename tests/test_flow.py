@@ -101,6 +101,39 @@ def test_layers_lie_inside_the_solid(tmp_path, small_part):
         assert solid.H(v).max() <= 1e-6, path.name
 
 
+class _Planted:
+    """An object whose unpickling runs a command (what a planted task record would carry)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def test_a_planted_task_record_is_never_unpickled(tmp_path, small_part):
+    import base64
+    import pickle
+
+    cfg = write_config(tmp_path / "cfg.yaml")
+    out = tmp_path / "run"
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
+    records = out / ".store.zarr.prefect-results"
+    mine = sorted(records.glob("*-*-*"))
+    assert mine and all(json.loads(p.read_text())["metadata"]["serializer"]["type"] == "neuralslicer-ref" for p in mine)
+    # someone with write access beside the store plants a pickle record under the cage step's key
+    cage = next(p for p in mine if p.name.startswith("cage-"))
+    record = json.loads(cage.read_text())
+    record["metadata"]["serializer"] = {"type": "pickle", "picklelib": "cloudpickle", "picklelib_version": None}
+    marker = tmp_path / "owned"
+    record["result"] = base64.b64encode(pickle.dumps(_Planted(str(marker)))).decode()
+    cage.write_text(json.dumps(record))
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
+    assert not marker.exists()                                                 # nothing ran
+    assert states(out)["cage"] == "Completed" and states(out)["field"] == "Cached"   # the reference recomputed
+    assert json.loads(cage.read_text())["metadata"]["serializer"]["type"] == "neuralslicer-ref"
+
+
 def test_kill_and_resume(tmp_path, small_part):
     cfg = write_config(
         tmp_path / "cfg.yaml",
