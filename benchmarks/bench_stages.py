@@ -1,0 +1,259 @@
+"""Stage budget: wall time and peak memory of every stage of a slice, each next to a limit where one is known.
+
+    .venv/bin/python benchmarks/bench_stages.py [ring|bracket ...]   (default: ring bracket)
+
+Part 1 runs the core chain in-process (no Prefect, no store), stage by stage, sampling the process's resident
+memory every 20 ms: model (implicit solid), samples, cage, FEA and stress samples (with an fea block),
+optimisation (with its step count and time per step), layers, toolpaths, collision check, travel lift and tilt,
+motion planning, G-code, report figures. Part 2 runs the default CLI command in a fresh store and again on the
+same store (the cached rerun): whole wall time, the tasks' own time and the rest (Prefect start-up and per-task
+overhead). Limits are lower bounds measured here: G-code at the disk's write speed for its bytes, the collision
+check at one nearest-neighbour query per waypoint, an optimisation step at one forward and backward pass of the
+deformation networks. Writes benchmarks/results/bench_stages.json and bench_stages.png.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import psutil  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent
+DATA = ROOT.parents[1] / "shared" / "data"
+RESULTS = ROOT / "results"
+MODELS = {
+    "ring": (["slice", str(DATA / "ring.tet"), "--up", "y"], {}),
+    "bracket": (["slice", str(ROOT.parent / "neuralslicer" / "examples" / "bracket" / "model.yaml"), "--max-steps", "200"],
+                {"max_steps": 200}),
+}
+
+
+class Stage:
+    """Context manager: wall time and peak resident memory (sampled every 20 ms) of one stage."""
+
+    def __init__(self, rows: list[dict], name: str, limit_s: float | None = None) -> None:
+        self.rows, self.name, self.limit_s = rows, name, limit_s
+        self.proc = psutil.Process()
+        self.info: dict = {}
+
+    def __enter__(self) -> "Stage":
+        self.base = self.proc.memory_info().rss
+        self.peak = self.base
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._sample, daemon=True)
+        self.thread.start()
+        self.t0 = time.perf_counter()
+        return self
+
+    def _sample(self) -> None:
+        while not self.stop.wait(0.02):
+            self.peak = max(self.peak, self.proc.memory_info().rss)
+
+    def __exit__(self, *exc: object) -> None:
+        wall = time.perf_counter() - self.t0
+        self.stop.set()
+        self.thread.join()
+        self.peak = max(self.peak, self.proc.memory_info().rss)
+        self.rows.append({"stage": self.name, "wall_s": wall, "peak_rss_mb": self.peak / 2**20,
+                          "added_rss_mb": (self.peak - self.base) / 2**20, "limit_s": self.limit_s, **self.info})
+
+
+def disk_write_mb_s(folder: Path, mb: int = 256) -> float:
+    """Sequential write speed of the disk holding ``folder`` (MB/s, fsync'd)."""
+    buf = os.urandom(2**20)
+    path = folder / "disk-speed.bin"
+    t = time.perf_counter()
+    with open(path, "wb") as fh:
+        for _ in range(mb):
+            fh.write(buf)
+        fh.flush()
+        os.fsync(fh.fileno())
+    s = time.perf_counter() - t
+    path.unlink()
+    return mb / s
+
+
+def core_stages(name: str, tmp: Path) -> tuple[list[dict], dict]:
+    """Every stage of one slice in-process; the rows and a few counts."""
+    from scipy.spatial import cKDTree
+
+    from neuralslicer.cage import make_cage
+    from neuralslicer.config import SliceConfig
+    from neuralslicer.fea import run_fea, stress_samples
+    from neuralslicer.gcode import write_gcode
+    from neuralslicer.layers import slice_layers
+    from neuralslicer.model import implicit_solid
+    from neuralslicer.model.spec import load_spec, spec_for_file
+    from neuralslicer.motion import load_profile, plan_print
+    from neuralslicer.neural.optimise import optimise_for_solid
+    from neuralslicer.report import plot_layers_3d, plot_thickness_map
+    from neuralslicer.samples import surface_samples
+    from neuralslicer.scalar_field import ScalarField
+
+    args, over = MODELS[name]
+    spec = spec_for_file(args[1], "y") if name == "ring" else load_spec(args[1])
+    cfg = SliceConfig()
+    rows: list[dict] = []
+    with Stage(rows, "model (implicit solid)"):
+        solid = implicit_solid(spec)
+    with Stage(rows, "samples B"):
+        samples = surface_samples(solid, cfg.samples.n_samples, k=cfg.samples.k, seed=cfg.samples.seed)
+    with Stage(rows, "cage (fTetWild)") as st:
+        cage = make_cage(solid, samples.points, cfg.cage)
+        st.info = {"cage_tets": int(len(cage.tets))}
+    stress = None
+    objectives = cfg.objectives_for(spec)
+    if spec.fea is not None:
+        with Stage(rows, "FEA + stress samples T") as st:
+            fea = run_fea(solid, spec.fea)
+            stress = stress_samples(fea, spec.fea.top_fraction)
+            st.info = {"voxels": int(len(fea.grid.centres))}
+    machine = load_profile(cfg.machine)
+    neural = cfg.neural.with_head(machine.nozzle, cfg.toolpath.line_width)
+    if "max_steps" in over:
+        neural = neural.model_copy(update={"optim": neural.optim.model_copy(update={"max_steps": over["max_steps"]})})
+    with Stage(rows, "optimisation") as st:
+        result = optimise_for_solid(solid, cage.vertices, cage.tets, samples, stress, objectives, neural)
+        st.info = {"steps": int(result.steps)}
+    opt = rows[-1]
+    opt["per_step_s"] = opt["wall_s"] / max(opt["steps"], 1)
+    opt["limit_s"] = opt["steps"] * network_pass_s(cage, neural)
+    field = ScalarField(cage.vertices, cage.tets, result.G)
+    with Stage(rows, "layers") as st:
+        layers = slice_layers(solid, field, cfg.layers)
+        st.info = {"layers": len(layers.meshes)}
+    with Stage(rows, "toolpaths + collisions + motion") as st:
+        tp, program, metrics, _ = plan_print(layers.meshes, platform_z=solid.platform_z, solid_H=solid.H,
+                                             toolpath_cfg=cfg.toolpath, profile=machine, t_max=cfg.layers.t_max)
+        st.info = {"waypoints": len(tp), "moves": len(program), "collisions": metrics["n_collisions"]}
+    whole = rows.pop()
+    material = cKDTree(tp.xyz)
+    t = time.perf_counter()
+    material.query(tp.xyz + 1.0, k=1)
+    nn_s = time.perf_counter() - t
+    timings = metrics["timings_s"]
+    for key, label, limit in (("toolpaths", "toolpaths (shells, infill, order, thickness)", None),
+                              ("collisions", "collision check", nn_s), ("tilt", "travel lift + tilt + reach", None),
+                              ("motion", "motion planning (IK, feeds, time estimate)", None)):
+        rows.append({"stage": label, "wall_s": float(timings[key]), "peak_rss_mb": whole["peak_rss_mb"],
+                     "added_rss_mb": whole["added_rss_mb"], "limit_s": limit,
+                     **({"waypoints": whole["waypoints"]} if key == "toolpaths" else {})})
+    speed = disk_write_mb_s(tmp)
+    with Stage(rows, "G-code") as st:
+        path = write_gcode(tmp / "print.gcode", program)
+        size = path.stat().st_size
+        st.info = {"bytes": size}
+    rows[-1]["limit_s"] = size / 2**20 / speed
+    with Stage(rows, "figures (layer preview, bead thickness)"):
+        plot_layers_3d(tmp / "layers.png", layers.meshes)
+        plot_thickness_map(tmp / "beads.png", tp.xyz, tp.thickness, tp.extrude, machine.nozzle.bead_thickness_mm)
+    counts = {"cage_tets": int(len(cage.tets)), "steps": int(result.steps), "layers": len(layers.meshes),
+              "waypoints": len(tp), "disk_write_mb_s": speed, "collisions": int(metrics["n_collisions"])}
+    return rows, counts
+
+
+def network_pass_s(cage, neural) -> float:  # noqa: ANN001
+    """One forward and backward pass of the deformation networks at the cage's tet centroids (the floor of an
+    optimisation step, which adds the ARAP solves and the losses)."""
+    import torch
+
+    from neuralslicer.neural.networks import DeformationFields
+
+    dtype = torch.float32 if neural.dtype == "float32" else torch.float64
+    bounds = np.stack([cage.vertices.min(0), cage.vertices.max(0)])
+    fields = DeformationFields(neural.network_config(), bounds).to(torch.device("cpu"), dtype)
+    x = torch.as_tensor(cage.vertices[cage.tets].mean(axis=1), dtype=dtype)
+    best = np.inf
+    for _ in range(5):
+        t = time.perf_counter()
+        q, s = fields(x)
+        (q.sum() + s.sum()).backward()
+        best = min(best, time.perf_counter() - t)
+    return float(best)
+
+
+def cli_runs(name: str, tmp: Path) -> dict:
+    """The default command in a fresh store, then again (cached): wall, tasks' own time, the rest."""
+    args, _ = MODELS[name]
+    out = tmp / "out"
+    env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect"), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+           "DO_NOT_TRACK": "1"}
+    res = {}
+    for run in ("fresh", "cached"):
+        t = time.perf_counter()
+        done = subprocess.run([sys.executable, "-m", "cli", *args, "--out", str(out)], env=env, cwd=ROOT.parent,
+                              capture_output=True, text=True)
+        wall = time.perf_counter() - t
+        if done.returncode != 0:
+            raise SystemExit(f"{name}: the slice failed: {done.stderr[-2000:]}")
+        run_json = json.loads((out / "run.json").read_text())
+        states = {r["task"]: r["state"] for r in run_json["tasks"]}
+        metrics = json.loads((out / "metrics.json").read_text())
+        # the tasks' own compute time (recorded with each artifact: this run's only when it computed them)
+        tasks_s = sum(float(v) for k, v in metrics.items() if k.startswith("wall_s.")
+                      and states.get(k.split(".", 1)[1]) == "Completed")
+        res[run] = {"wall_s": wall, "tasks_s": tasks_s, "overhead_s": wall - tasks_s, "states": states}
+    return res
+
+
+def plot(path: Path, results: dict) -> None:
+    """Bar chart of the stage times per model, limits as black ticks."""
+    fig, axes = plt.subplots(1, len(results), figsize=(7 * len(results), 5), squeeze=False)
+    for ax, (name, r) in zip(axes[0], results.items()):
+        rows = r["stages"]
+        y = np.arange(len(rows))
+        ax.barh(y, [row["wall_s"] for row in rows], color="tab:blue")
+        for i, row in enumerate(rows):
+            if row.get("limit_s"):
+                ax.plot([row["limit_s"]] * 2, [i - 0.4, i + 0.4], color="black", linewidth=2)
+        ax.set_yticks(y, [row["stage"] for row in rows], fontsize=8)
+        ax.invert_yaxis()
+        ax.set_xscale("log")
+        ax.set_xlabel("wall time (s, log); black: the stage's lower bound")
+        cli = r.get("cli", {})
+        title = name
+        if cli:
+            title += f": CLI {cli['fresh']['wall_s']:.0f} s fresh, {cli['cached']['wall_s']:.1f} s cached"
+        ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(names: list[str]) -> None:
+    """Measure every model named and write the JSON and the chart."""
+    results = {}
+    for name in names:
+        with tempfile.TemporaryDirectory() as tmp:
+            load = os.getloadavg()[0]
+            rows, counts = core_stages(name, Path(tmp))
+            cli = cli_runs(name, Path(tmp))
+        results[name] = {"stages": rows, "counts": counts, "cli": cli, "load_avg_1min_at_start": load}
+        print(f"\n{name} (load {load:.1f}): {counts}")
+        print(f"{'stage':48s} {'wall s':>8s} {'limit s':>8s} {'peak MB':>8s}")
+        for row in rows:
+            lim = f"{row['limit_s']:.2f}" if row.get("limit_s") else "-"
+            print(f"{row['stage']:48s} {row['wall_s']:8.2f} {lim:>8s} {row['peak_rss_mb']:8.0f}")
+        print(f"CLI: fresh {cli['fresh']['wall_s']:.1f} s (tasks {cli['fresh']['tasks_s']:.1f} s, rest "
+              f"{cli['fresh']['overhead_s']:.1f} s); cached rerun {cli['cached']['wall_s']:.1f} s")
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "bench_stages.json").write_text(json.dumps(
+        {"models": results, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                                        "platform": platform.platform()}}, indent=2, default=float))
+    plot(RESULTS / "bench_stages.png", results)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:] or ["ring", "bracket"])
