@@ -233,8 +233,9 @@ def plot(path: Path, results: dict) -> None:
 
 
 def main(names: list[str]) -> None:
-    """Measure every model named and write the JSON and the chart."""
-    results = {}
+    """Measure every model named and write the JSON and the chart (models measured before are kept)."""
+    path = RESULTS / "bench_stages.json"
+    results = json.loads(path.read_text())["models"] if path.exists() else {}
     for name in names:
         with tempfile.TemporaryDirectory() as tmp:
             load = os.getloadavg()[0]
