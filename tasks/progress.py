@@ -87,7 +87,8 @@ class Progress:
         first = self._next_fraction == 0.1 and self._last_line == self._start   # the first update: where it starts
         if first or done / self.total >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
             rate = done / max(now - self._start, 1e-9)
-            left = f", at most {(self.total - done) / rate:.0f} s left" if 0 < done < self.total else ""
+            settled = done >= max(5, 0.02 * self.total)         # the rate of the first steps says little
+            left = f", at most {(self.total - done) / rate:.0f} s left" if settled and done < self.total else ""
             line = f"{self.description}: {done}/{self.total} ({rate:.3g}/s, {now - self._start:.0f} s{left}) {info}"
             say(line)
             self._publish(100.0 * done / self.total, line)
