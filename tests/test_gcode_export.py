@@ -286,6 +286,14 @@ def test_every_layer_is_marked_before_its_first_move(tmp_path, curved, profile_n
         assert progress[0] == 0 and progress[-1] == 100 and np.all(np.diff(progress) >= 0)
 
 
+def test_layer_marks_carry_the_isovalue(tmp_path, curved):
+    tp, prog, _ = curved
+    lines = write_gcode(tmp_path / "print.ngc", prog).read_text().splitlines()
+    values = [float(m.group(1)) for ln in lines if (m := re.search(r"LAYER \d+ / \d+, .*isovalue G = ([-0-9.e+]+)", ln))]
+    expected = [tp.attrs["isovalues"][k] for k in np.unique(prog.layer)]
+    assert len(values) == len(expected) and np.allclose(values, expected, rtol=1e-5)
+
+
 def test_program_starts_and_ends_clear_of_the_part(curved):
     from neuralslicer.motion import machine_position
     from neuralslicer.motion.planning import TRAVEL

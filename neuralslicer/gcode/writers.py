@@ -70,16 +70,20 @@ def _layer_segments(program: MachineProgram, first: int = 0) -> Iterator[tuple[i
         if a >= b:
             continue
         z = program.part_xyz[a:b, 2]
+        iso = program.attrs.get("isovalues") or []
+        li = int(layer[a])
         info = {"number": k + 1, "count": n_layers, "z": (float(z.min()), float(z.max())),
+                "isovalue": iso[li] if 0 <= li < len(iso) else None,
                 "elapsed_s": float(elapsed[a]), "done": float(elapsed[a] / total), "remaining_s": total - float(elapsed[a])}
         for c in range(a, b, _CHUNK):
             yield c, min(c + _CHUNK, b), info if c == a else None
 
 
 def _layer_comment(info: dict) -> str:
-    """``LAYER k / n, build z lo..hi mm, at h:mm:ss, p % of the time`` (no brackets: LinuxCNC comments do not nest)."""
+    """``LAYER k / n, build z lo..hi mm, isovalue G = g, at h:mm:ss, p % of the time`` (no brackets: LinuxCNC comments do not nest)."""
     t = int(round(info["elapsed_s"]))
-    return (f"LAYER {info['number']} / {info['count']}, build z {info['z'][0]:.3f}..{info['z'][1]:.3f} mm, "
+    iso = f", isovalue G = {info['isovalue']:.6g}" if info.get("isovalue") is not None else ""
+    return (f"LAYER {info['number']} / {info['count']}, build z {info['z'][0]:.3f}..{info['z'][1]:.3f} mm{iso}, "
             f"at {t // 3600}:{t // 60 % 60:02d}:{t % 60:02d}, {100 * info['done']:.1f} % of the time")
 
 

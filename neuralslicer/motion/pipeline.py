@@ -54,6 +54,7 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg)
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
+    program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
     t4 = time.perf_counter()
     metrics = program_metrics(program)
     metrics["travel_lift"] = lifted
@@ -65,7 +66,7 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     metrics["n_layers"] = tp.n_layers
     metrics["n_paths"] = int(tp.attrs.get("n_paths", 0))
     metrics.update(report.summary())
-    metrics.update({k: v for k, v in program.attrs.items() if k != "platform_z"})
+    metrics.update({k: v for k, v in program.attrs.items() if k not in ("platform_z", "isovalues")})
     on = tp.path >= 0
     metrics["thickness_mm"] = {"min": float(tp.thickness[on].min()), "mean": float(tp.thickness[on].mean()),
                                "max": float(tp.thickness[on].max())}
