@@ -51,11 +51,12 @@ def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stre
         say(f"optimise: stops once the overhang is at most {oc.target_overhang:g} of B (then {oc.target_overhang_late:g} "
             f"from step {oc.late_after}), no pool point's head hits earlier material and L_CA = 0, checked every "
             f"{oc.check_every} steps; else after {oc.max_steps} steps or when the loss stalls")
+    shown = [k for k in PROGRESS_TERMS if k not in ("sf", "po", "sr", "gc") or k in objectives]
     with Progress("optimise", total=config.optim.max_steps) as bar:
         result = optimise_for_solid(
             solid, cage.vertices, cage.tets, samples, stress, objectives, config, user_field=user_field,
             user_field_points=user_field_points, save_checkpoint=checkpoints.save, load_checkpoint=checkpoints.load,
-            progress=lambda step, info: bar.update(step, **{k: float(info[k]) for k in PROGRESS_TERMS if k in info}),
+            progress=lambda step, info: bar.update(step, **{k: float(info[k]) for k in shown if k in info}),
         )
     get_run_logger().info("optimised in %d steps (%.1f s): %s", result.steps, result.wall_time_s, result.final)
     arrays, attrs = result.to_arrays()
