@@ -107,12 +107,16 @@ def check_fea_regions(solid: SolidLike, spec: FEASpec) -> None:
 
 def preflight(spec: ModelSpec, solid: Solid, config: SliceConfig, out_dir: Path, store: str, force: bool = False,
               needs_fea: bool = False) -> None:
-    """Every check of a slice before any work starts (outputs, store, scale, layers, machine, FEA)."""
+    """Every check of a slice before any work starts (outputs, store, scale, layers, machine and its nozzle, FEA)."""
     check_output_dir(out_dir, spec.files() + ([spec.source] if spec.source is not None else []))
     check_store_location(store)
     check_scale(solid, spec)
     check_layer_count(solid, config, limit=10**9 if force else MAX_LAYERS)
-    check_machine(config.machine)
+    machine = check_machine(config.machine)
+    lo, hi = machine.nozzle.bead_width_mm
+    if not lo <= config.toolpath.line_width <= hi:
+        raise InputError("toolpath.line_width", f"{config.toolpath.line_width:g} mm is outside the bead widths the "
+                         f"nozzle of {machine.name} lays ({lo:g}..{hi:g} mm, nozzle.bead_width_mm in the profile)")
     if needs_fea:
         if spec.fea is None:
             raise InputError(spec.source or "model", "strength (sr) or --verify needs the spec's 'fea' block")

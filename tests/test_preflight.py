@@ -124,6 +124,14 @@ def test_unknown_machine_profile(tmp_path, part, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_line_width_the_nozzle_cannot_lay(tmp_path, part, capsys):
+    cfg = tmp_path / "wide.yaml"
+    cfg.write_text("toolpath: {line_width: 1.6}\n")
+    refuse(capsys, ["slice", str(part), "--out", str(tmp_path / "out"), "--config", str(cfg)],
+           "toolpath.line_width", "1.6 mm is outside the bead widths", "nozzle.bead_width_mm")
+    assert not (tmp_path / "out").exists()
+
+
 def test_fea_regions_that_select_nothing(tmp_path, capsys):
     mesh = tmp_path / "part.stl"
     l_part_mesh().export(mesh)
