@@ -77,3 +77,14 @@ def fast_config(**overrides: object) -> dict:
 def rng() -> np.random.Generator:
     """A seeded random generator."""
     return np.random.default_rng(0)
+
+
+class Planted:
+    """An object whose unpickling runs a command (what a planted checkpoint or task record would carry)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+        return (os.system, (f"touch {self.marker}",))

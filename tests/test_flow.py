@@ -15,7 +15,7 @@ import pytest
 import trimesh
 import yaml
 
-from conftest import REPO, fast_config
+from conftest import REPO, Planted, fast_config
 from cli.main import main
 
 pytestmark = pytest.mark.usefixtures("prefect_server")
@@ -101,16 +101,6 @@ def test_layers_lie_inside_the_solid(tmp_path, small_part):
         assert solid.H(v).max() <= 1e-6, path.name
 
 
-class _Planted:
-    """An object whose unpickling runs a command (what a planted task record would carry)."""
-
-    def __init__(self, marker: str) -> None:
-        self.marker = marker
-
-    def __reduce__(self):
-        return (os.system, (f"touch {self.marker}",))
-
-
 def test_a_planted_task_record_is_never_unpickled(tmp_path, small_part):
     import base64
     import pickle
@@ -126,7 +116,7 @@ def test_a_planted_task_record_is_never_unpickled(tmp_path, small_part):
     record = json.loads(cage.read_text())
     record["metadata"]["serializer"] = {"type": "pickle", "picklelib": "cloudpickle", "picklelib_version": None}
     marker = tmp_path / "owned"
-    record["result"] = base64.b64encode(pickle.dumps(_Planted(str(marker)))).decode()
+    record["result"] = base64.b64encode(pickle.dumps(Planted(str(marker)))).decode()
     cage.write_text(json.dumps(record))
     assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
     assert not marker.exists()                                                 # nothing ran

@@ -10,6 +10,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from conftest import Planted
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.neural.device import resolve_device
@@ -276,23 +277,12 @@ def test_the_late_overhang_target_applies_from_late_after(problem):
     assert not met(100, 0.5 * planar) and not met(100, 0.0)
 
 
-class _Planted:
-    """An object whose unpickling runs a command (what a planted checkpoint would carry)."""
-
-    def __init__(self, marker: str) -> None:
-        self.marker = marker
-
-    def __reduce__(self):
-        import os
-        return (os.system, (f"touch {self.marker}",))
-
-
 def test_a_planted_checkpoint_cannot_run_code(problem, tmp_path):
     import io
 
     marker = tmp_path / "owned"
     buf = io.BytesIO()
-    torch.save({"version": 2, "fields": _Planted(str(marker))}, buf)
+    torch.save({"version": 2, "fields": Planted(str(marker))}, buf)
     with pytest.warns(RuntimeWarning, match="older format was ignored"):
         r = _run(problem, _cfg(max_steps=5), load_checkpoint=lambda: buf.getvalue())
     assert not marker.exists()

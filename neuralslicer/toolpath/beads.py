@@ -28,8 +28,9 @@ def hold_beads(tp: Toolpaths, bead_range: tuple[float, float], radius: float | N
     thicker by a carried gap), ``n_capped``, the gap histogram (``hist_edges_mm``, ``hist_counts``).
     """
     lo, hi = (float(v) for v in bead_range)
-    radius = float(np.median(tp.width)) if radius is None and len(tp) else (radius or 0.5)
     on = tp.path >= 0
+    if radius is None:
+        radius = float(np.median(tp.width[on])) if on.any() else 0.5     # the line width (travels have width 0)
     printing = on & tp.extrude
     gap = tp.thickness.copy()
     extrude = tp.extrude.copy()
