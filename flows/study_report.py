@@ -9,11 +9,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
 
 from flows.branch import Branch  # noqa: E402
 from flows.settings import artifact_key  # noqa: E402
+from neuralslicer.metrics import field_agreement  # noqa: E402
 from neuralslicer.report import plot_learning_curves  # noqa: E402
-from storage import ArtifactStore, atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
+from storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
+from tasks.codec import read_cage, read_field  # noqa: E402
 
 LOSS_TERMS = ("total", "sf", "po", "sr", "hs", "hq", "ca")
 
@@ -79,6 +82,32 @@ def learning_curves(branches: list[Branch], study: dict[str, Any]) -> dict[str, 
     return curves
 
 
+def fields_agreement(branches: list[Branch], study: dict[str, Any]) -> list[dict[str, Any]]:
+    """How alike the completed branches' fields are (LPD angles and print-order correlation at the first branch's
+    surface samples B, ``neuralslicer.metrics.field_agreement``): the headline of the initial-guess study, where
+    every start stops at the same loss target whether or not the fields agree."""
+    fields, points = {}, None
+    for b, r in zip(branches, study["branches"]):
+        if r.get("status") != "completed":
+            continue
+        ref = lambda path: ArtifactRef(b.store, path, path.rsplit("/", 1)[-1])  # noqa: E731
+        fields[r["name"]] = read_field(read_cage(ref(r["cage"]["path"])), ref(r["field"]["path"]))
+        if points is None and (Path(r["out_dir"]) / "samples_B.ply").is_file():
+            points = np.asarray(trimesh.load(Path(r["out_dir"]) / "samples_B.ply", process=False).vertices)
+    if len(fields) < 2 or points is None:
+        return []
+    return field_agreement(fields, points)
+
+
+def agreement_table(rows: list[dict[str, Any]]) -> str:
+    """The pairs as a Markdown table."""
+    lines = ["| fields | LPD angle, median | LPD angle, 90th pct | print order (Spearman) | points |",
+             "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {r['a']} vs {r['b']} | {r['lpd_angle_median_deg']:.1f}° | {r['lpd_angle_p90_deg']:.1f}° | "
+              f"{r['print_order_spearman']:.3f} | {r['n_points']:,} |" for r in rows]
+    return "\n".join(lines)
+
+
 def plot_cage_study(path: Path, study: dict[str, Any]) -> None:
     """Cage study: step time and final total loss against the cage element count (genus annotated)."""
     done = [b for b in study["branches"] if b.get("status") == "completed"]
@@ -123,10 +152,19 @@ def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Bra
         plot_cage_study(out_dir / "figures" / "cages.png", study)
         figures["Cage resolution"] = "figures/cages.png"
     study["figures"] = figures
+    agreement = fields_agreement(branches, study) if study["kind"] == "initial-guess" else []
+    if agreement:
+        study["agreement"] = agreement
     rows = table_rows(study)
     write_json_atomic(out_dir / "study.json", study)
-    lines = [f"# {study['title']}", "", f"{len(study['branches'])} branches, wall time {study['wall_s']:.1f} s.", "",
-             markdown_table(rows), "",
+    lines = [f"# {study['title']}", "", f"{len(study['branches'])} branches, wall time {study['wall_s']:.1f} s.", ""]
+    if agreement:
+        lines += ["## How alike the fields are", "",
+                  "Every start stops at the same targets, so equal losses say little; this is what the starts change: "
+                  "the angle between the print directions at the surface samples B, and the rank correlation of "
+                  "the fields' values there (1: the same print order).", "", agreement_table(agreement), "",
+                  "## Branches", ""]
+    lines += [markdown_table(rows), "",
              "`s/step`: the optimisation's wall time (set-up and pre-training included) over its steps; "
              "`SF supported`: area fraction of the surface samples B within the self-supporting angle; "
              "`overhang`: area fraction beyond it (`overhang planar`: the same for planar layers); "

@@ -1,9 +1,14 @@
 """Quality figures of a field: support-free and strength satisfaction on the sample sets."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from neuralslicer.scalar_field import ScalarField
 
 
 def support_angles(normals: np.ndarray, lpd: np.ndarray) -> np.ndarray:
@@ -54,3 +59,25 @@ def layer_lpd_at(layers: list[trimesh.Trimesh], points: np.ndarray) -> np.ndarra
     lpd = np.concatenate([np.asarray(m.vertex_attributes["lpd"], np.float64) for m in layers])
     d = lpd[cKDTree(verts).query(np.asarray(points, np.float64))[1]]
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+
+
+def field_agreement(fields: dict[str, ScalarField], points: np.ndarray) -> list[dict[str, float | str]]:
+    """How alike fields are where it matters: for each pair, the angle between their print directions (LPD)
+    at the points (median, 90th percentile, mean, degrees) and the Spearman rank correlation of their values
+    (1: the same print order, -1: reversed); points outside either cage are left out."""
+    from scipy.stats import spearmanr
+
+    sampled = {name: f.sample(np.asarray(points, np.float64))[:2] for name, f in fields.items()}
+    names = list(sampled)
+    rows: list[dict[str, float | str]] = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            (ga, da), (gb, db) = sampled[a], sampled[b]
+            ok = np.isfinite(ga) & np.isfinite(gb) & np.all(np.isfinite(da), axis=1) & np.all(np.isfinite(db), axis=1)
+            if ok.sum() < 3:
+                continue
+            ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", da[ok], db[ok]), -1.0, 1.0)))
+            rows.append({"a": a, "b": b, "n_points": int(ok.sum()), "lpd_angle_median_deg": float(np.median(ang)),
+                         "lpd_angle_p90_deg": float(np.percentile(ang, 90)), "lpd_angle_mean_deg": float(ang.mean()),
+                         "print_order_spearman": float(spearmanr(ga[ok], gb[ok]).statistic)})
+    return rows

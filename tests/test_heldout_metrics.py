@@ -31,3 +31,27 @@ def test_layer_lpd_is_the_nearest_layer_vertex_normal():
     d = layer_lpd_at(caps, on)
     assert np.allclose(np.linalg.norm(d, axis=1), 1.0)
     assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", d, on / np.linalg.norm(on, axis=1)[:, None]), -1, 1))).max() < 1.0
+
+
+def test_field_agreement_measures_lpd_angles_and_print_order():
+    from scipy.spatial import Delaunay
+
+    from neuralslicer.metrics import field_agreement
+    from neuralslicer.scalar_field import ScalarField
+
+    g = np.stack(np.meshgrid(*[np.linspace(0, 10, 6)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    g = g + np.random.default_rng(0).normal(scale=1e-3, size=g.shape)
+    tets = Delaunay(g).simplices.astype(np.int64)
+    fields = {"up": ScalarField(g, tets, g[:, 2].copy()),
+              "tilted": ScalarField(g, tets, g[:, 2] + 0.1 * g[:, 0]),
+              "down": ScalarField(g, tets, -g[:, 2].copy())}
+    pts = np.random.default_rng(1).uniform(0.5, 9.5, (500, 3))
+    rows = {(r["a"], r["b"]): r for r in field_agreement(fields, pts)}
+    assert set(rows) == {("up", "tilted"), ("up", "down"), ("tilted", "down")}
+    tilt = np.degrees(np.arctan(0.1))
+    assert rows[("up", "tilted")]["lpd_angle_median_deg"] == pytest.approx(tilt, abs=0.05)
+    assert rows[("up", "tilted")]["lpd_angle_p90_deg"] == pytest.approx(tilt, abs=0.05)
+    assert rows[("up", "down")]["lpd_angle_median_deg"] == pytest.approx(180.0, abs=0.05)
+    assert rows[("up", "down")]["print_order_spearman"] == pytest.approx(-1.0, abs=1e-9)
+    assert 0.95 < rows[("up", "tilted")]["print_order_spearman"] < 1.0
+    assert rows[("up", "tilted")]["n_points"] == 500

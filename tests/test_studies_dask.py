@@ -62,3 +62,8 @@ def test_initial_guess_study_runs_branches_in_dask_worker_processes(
         assert metrics["field.steps"] == 8 and "provenance.inputs.spec_sha256" in metrics
         assert (out / name / "report.md").is_file() and (out / name / "provenance.json").is_file()
     assert study["kind"] == "initial-guess"
+    # the headline: how alike the three fields are (LPD angles, print-order correlation), every pair once
+    pairs = {(r["a"], r["b"]) for r in recorded["agreement"]}
+    assert len(pairs) == 3 and all(r["n_points"] > 100 and 0.0 <= r["lpd_angle_median_deg"] <= 180.0
+                                   and -1.0 <= r["print_order_spearman"] <= 1.0 for r in recorded["agreement"])
+    assert "## How alike the fields are" in text and "LPD angle, median" in text
