@@ -75,7 +75,7 @@ def learning_curves(branches: list[Branch], study: dict[str, Any]) -> dict[str, 
     for b, r in zip(branches, study["branches"]):
         if r.get("status") != "completed" or not r["field"].get("steps"):
             continue
-        arrays, _ = ArtifactStore(b.store).read(r["field"]["path"])
+        arrays, _ = ArtifactStore(b.store, create=False).read(r["field"]["path"])
         history = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("history/")}
         if "total" in history and len(history["total"]):
             curves[r["name"]] = {"total": history["total"]}

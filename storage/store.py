@@ -40,11 +40,18 @@ class ArtifactRef:
 class ArtifactStore:
     """A zarr v3 store on a local path or an fsspec URL; groups become visible only when complete."""
 
-    def __init__(self, root: str | Path) -> None:
-        """Open (and create if needed) the store at a local path or fsspec URL."""
+    def __init__(self, root: str | Path, create: bool = True) -> None:
+        """Open the store at a local path or fsspec URL, creating it when ``create`` (readers pass False: a
+        reader never leaves an empty store behind, and a missing one is a FileNotFoundError naming it)."""
         root = str(root)
         self.is_local = "://" not in root or root.startswith("file://")
         self.root = str(Path(root.removeprefix("file://")).resolve()) if self.is_local else root.rstrip("/")
+        if not create:
+            try:
+                zarr.open_group(self.root, mode="r")
+            except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+                raise FileNotFoundError(f"{self.root}: no artifact store there") from exc
+            return
         if self.is_local:
             Path(self.root).mkdir(parents=True, exist_ok=True)
         zarr.open_group(self.root, mode="a")

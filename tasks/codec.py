@@ -26,12 +26,12 @@ from storage import ArtifactRef, ArtifactStore, digest
 
 def read(ref: ArtifactRef, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Arrays (all, or the named ones) and attributes of a stored step."""
-    return ArtifactStore(ref.store).read(ref.path, names)
+    return ArtifactStore(ref.store, create=False).read(ref.path, names)
 
 
 def attrs_of(ref: ArtifactRef) -> dict[str, Any]:
     """Attributes of a stored step."""
-    return ArtifactStore(ref.store).attrs(ref.path)
+    return ArtifactStore(ref.store, create=False).attrs(ref.path)
 
 
 def step_attrs(refs: dict[str, ArtifactRef | None]) -> dict[str, dict[str, Any]]:

@@ -128,3 +128,17 @@ def test_locks_name_host_and_pid_and_are_taken_over_only_when_abandoned(tmp_path
         os.utime(g, (old, old))
         time.sleep(0.3)
         assert time.time() - g.stat().st_mtime < 5
+
+
+def test_reading_never_creates_a_store(tmp_path):
+    from tasks.codec import read
+
+    missing = tmp_path / "moved" / "store.zarr"
+    with pytest.raises(FileNotFoundError, match="no artifact store there"):
+        ArtifactStore(missing, create=False)
+    with pytest.raises(FileNotFoundError):
+        read(ArtifactRef(str(missing), "m/cage/abc", "abc"))
+    assert not missing.exists() and not missing.parent.exists()
+    st = ArtifactStore(tmp_path / "s.zarr")                       # a writer creates it
+    st.write("m/x/1", {"a": np.arange(3)}, {"k": 1})
+    assert ArtifactStore(tmp_path / "s.zarr", create=False).read("m/x/1")[1]["k"] == 1
