@@ -32,11 +32,15 @@ class RunLog:
     """The state of every task of one flow run, in order."""
 
     states: list[tuple[str, str]] = field(default_factory=list)
+    #: wall time of each task run (s), Prefect's round trips included, in the order of ``states``
+    walls: list[float] = field(default_factory=list)
 
     def run(self, task: Any, **params: Any) -> ArtifactRef:
-        """Run a task, record its final state name (Completed / Cached / ...), return its result."""
+        """Run a task, record its final state name (Completed / Cached / ...) and wall time, return its result."""
+        start = time.perf_counter()
         state: State = run_step(task, **params)
         self.states.append((task.name, state.name))
+        self.walls.append(time.perf_counter() - start)
         return state.result()
 
 
@@ -90,12 +94,14 @@ def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRe
 
 @dataclass
 class SliceRun:
-    """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest."""
+    """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest,
+    every task run's wall time."""
 
     name: str
     states: list[tuple[str, str]]
     refs: dict[str, ArtifactRef | None]
     provenance_digest: str
+    walls: list[float] = field(default_factory=list)
 
 
 def slice_pipeline(
@@ -162,7 +168,7 @@ def slice_pipeline(
     add_to_metrics(out_dir, record)
     refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "fea": fea, "stress_samples": stress,
             "field": field_ref, "layers": layers, "toolpaths": printing, "verify": verify}
-    return SliceRun(name, log.states, refs, provenance_digest)
+    return SliceRun(name, log.states, refs, provenance_digest, log.walls)
 
 
 def slice_run_name() -> str:
@@ -206,7 +212,7 @@ def slice_flow(
         "flow_run_name": flow_run.name,
         "report_artifact": publish_report(run.name, out_dir),
         "provenance_digest": run.provenance_digest,
-        "tasks": [{"task": t, "state": s} for t, s in run.states],
+        "tasks": [{"task": t, "state": s, "wall_s": w} for (t, s), w in zip(run.states, run.walls)],
         "all_cached": all(s == "Cached" for _, s in run.states),
         "wall_s": time.perf_counter() - start,
         "store": store,
