@@ -1,6 +1,7 @@
 """What a run shows while it works: a rich bar on a terminal, plain lines on stderr every tenth of the way
-or every ``line_every_s`` seconds (so a run whose output goes to a file or a scheduler's log can be
-followed too), and the same lines as Prefect INFO logs."""
+(of this run's own work: a resumed optimisation counts from its checkpoint) or every ``line_every_s``
+seconds (so a run whose output goes to a file or a scheduler's log can be followed too), and the same lines
+as Prefect INFO logs."""
 from __future__ import annotations
 
 import sys
@@ -50,6 +51,7 @@ class Progress:
         self._next_fraction = 0.1
         self._start = self._last_line = time.perf_counter()
         self._artifact: UUID | None = None
+        self._origin: int | None = None
 
     def __enter__(self) -> Progress:
         """Start the bar (and a Prefect progress artifact inside a flow or task run)."""
@@ -84,13 +86,18 @@ class Progress:
         info = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in fields.items())
         self._bar.update(self._task, completed=done, total=self.total, info=info)
         now = time.perf_counter()
-        first = self._next_fraction == 0.1 and self._last_line == self._start   # the first update: where it starts
-        if first or done / self.total >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
-            rate = done / max(now - self._start, 1e-9)
-            settled = done >= max(5, 0.02 * self.total)         # the rate of the first steps says little
-            left = f", at most {(self.total - done) / rate:.0f} s left" if settled and done < self.total else ""
+        first = self._origin is None
+        if first:                   # where this run starts: 0, or a resumed run's checkpoint (its first update is one past)
+            self._origin = max(min(done, self.total) - 1, 0)
+        span = max(self.total - self._origin, 1)
+        fraction = (done - self._origin) / span     # a tenth of the way is a tenth of this run's own work
+        if first or fraction >= self._next_fraction or done == self.total or now - self._last_line >= self.line_every_s:
+            rate = (done - self._origin) / max(now - self._start, 1e-9)
+            settled = done - self._origin >= max(5, 0.02 * span)     # the rate of the first steps says little
+            left = (f", at most {(self.total - done) / rate:.0f} s left"
+                    if settled and rate > 0 and done < self.total else "")
             line = f"{self.description}: {done}/{self.total} ({rate:.3g}/s, {now - self._start:.0f} s{left}) {info}"
             say(line)
             self._publish(100.0 * done / self.total, line)
-            self._next_fraction = (int(done / self.total * 10) + 1) / 10
+            self._next_fraction = (int(fraction * 10) + 1) / 10
             self._last_line = now
