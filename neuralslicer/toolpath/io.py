@@ -74,7 +74,7 @@ def write_toolpaths_vtp(path: str | Path, tp: Toolpaths) -> Path:
     return Path(path)
 
 
-def plot_toolpaths_png(path: str | Path, tp: Toolpaths, max_segments: int = 150_000,
+def plot_toolpaths_png(path: str | Path, tp: Toolpaths, max_segments: int = 60_000,
                        title: str | None = None) -> Path:
     """PNG preview (matplotlib 3D, Agg): extrusion segments coloured by print order."""
     import matplotlib
