@@ -55,14 +55,8 @@ def plot_layers(path: Path, layers: Sequence[trimesh.Trimesh], surface: trimesh.
             faces = m.faces if len(m.faces) <= per else m.faces[np.linspace(0, len(m.faces) - 1, per).astype(int)]
             poly = Poly3DCollection(m.vertices[faces], facecolor=cmap(i / max(n - 1, 1)), edgecolor="none", alpha=0.9)
             ax.add_collection3d(poly)
-        centre, half = (lo + hi) / 2, (hi - lo).max() / 2
-        ax.set_xlim(centre[0] - half, centre[0] + half)
-        ax.set_ylim(centre[1] - half, centre[1] + half)
-        ax.set_zlim(centre[2] - half, centre[2] + half)
+        _equal_3d(ax, np.vstack([lo, hi]))
         ax.view_init(elev=elev, azim=azim)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        ax.set_zlabel("z (mm)")
     fig.suptitle(f"{n} layers (every {stride}), colour = print order")
     _save(fig, path)
 
@@ -128,11 +122,7 @@ def plot_collision_map(path: Path, prints: dict[str, tuple[np.ndarray, np.ndarra
         bad = np.flatnonzero(hit)
         bad = bad[:: max(1, len(bad) // max_points)]
         ax.scatter(*xyz[bad].T, s=3, c="red", linewidths=0)
-        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-        centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6)
-        ax.set_xlim(centre[0] - half, centre[0] + half)
-        ax.set_ylim(centre[1] - half, centre[1] + half)
-        ax.set_zlim(centre[2] - half, centre[2] + half)
+        _equal_3d(ax, xyz)
         ax.view_init(elev=20, azim=-60)
         ax.set_title(f"{label}\n{int(hit.sum()):,} colliding of {len(hit):,} waypoints", fontsize=9)
     fig.suptitle("print head collisions (red) against earlier layers and the platform")

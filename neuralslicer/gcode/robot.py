@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from neuralslicer.fileio import atomic_path
+from neuralslicer.motion.planning import move_speeds
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import BoolArray, FloatArray
@@ -154,9 +155,7 @@ def extruder_toggle(extrude: BoolArray) -> BoolArray:
 def velocities(tp: Toolpaths, profile: MachineProfile) -> FloatArray:
     """Speed (n,) of the move arriving at each waypoint (mm/s): first-layer speed on the first layer, else
     print speed, where it deposits; travel speed elsewhere (the speeds ``plan_motion`` programs)."""
-    f = profile.feeds
-    first = tp.layer == tp.layer.min() if len(tp) else np.zeros(0, bool)
-    return np.where(tp.extrude, np.where(first, f.first_layer_mm_s, f.print_mm_s), f.travel_mm_s)
+    return move_speeds(tp.layer, tp.extrude, profile.feeds)
 
 
 def wait_times(tp: Toolpaths, profile: MachineProfile) -> FloatArray:

@@ -7,7 +7,7 @@ import numpy as np
 
 from neuralslicer.errors import PlanError
 from neuralslicer.motion.kinematics import forward_kinematics, inverse_kinematics, machine_position
-from neuralslicer.motion.profile import MachineProfile
+from neuralslicer.motion.profile import Feeds, MachineProfile
 from neuralslicer.motion.timing import program_time
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
@@ -92,29 +92,42 @@ def filament_area(profile: MachineProfile) -> float:
     return float(np.pi * 0.25 * profile.extrusion.filament_diameter ** 2)
 
 
+def move_speeds(layer: IndexArray, extrude: np.ndarray, feeds: Feeds) -> FloatArray:
+    """Programmed tool-tip speed (n,) of the move arriving at each waypoint (mm/s): the first-layer speed on the
+    first printed layer, the print speed elsewhere where it extrudes, the travel speed where it does not."""
+    first = layer == layer.min() if len(layer) else np.zeros(0, bool)
+    return np.where(extrude, np.where(first, feeds.first_layer_mm_s, feeds.print_mm_s), feeds.travel_mm_s)
+
+
+def _travel_times(poses: FloatArray, feeds: Feeds) -> FloatArray:
+    """Duration (k,) of travels through machine poses (k, 5): length over the travel speed, at least the rotary
+    change over the rotary speed (the first pose's own move has length 0)."""
+    seg = np.linalg.norm(np.diff(poses[:, :3], axis=0, prepend=poses[:1, :3]), axis=1)
+    rot = np.abs(np.diff(poses[:, 3:5], axis=0, prepend=poses[:1, 3:5])).max(axis=1)
+    return np.maximum(seg / feeds.travel_mm_s, rot / feeds.rotary_deg_s)
+
+
 def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
     """One move per waypoint (plus the approach from above the first one along its tool axis): part
-    position, B/C by IK with its singular and out-of-range flags, filament and duration of the move
-    arriving there."""
+    position, B/C by IK with its singular flags, filament and duration of the move arriving there."""
     kin, f = profile.kinematics, profile.feeds
     lift = float(tp.attrs.get("config", {}).get("travel_lift", 1.0)) or 1.0
     first = lambda a, v: np.concatenate([v, a])  # noqa: E731
     xyz = first(tp.xyz, tp.xyz[:1] + lift * tp.axis[:1])
     layer, extrude = first(tp.layer, tp.layer[:1]), first(tp.extrude, [False])
     thick, width = first(tp.thickness, tp.thickness[:1]), first(tp.width, tp.width[:1])
-    b, c, singular, out = inverse_kinematics(first(tp.axis, tp.axis[:1]), kin)
+    b, c, singular, _ = inverse_kinematics(first(tp.axis, tp.axis[:1]), kin)   # the limits: check_limits
     m = len(xyz)
     seg, t_mean, w_mean, drot = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
     seg[1:] = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
     t_mean[1:] = 0.5 * (thick[1:] + thick[:-1])
     w_mean[1:] = 0.5 * (width[1:] + width[:-1])
     de = np.where(extrude, profile.extrusion.flow * t_mean * w_mean * seg / filament_area(profile), 0.0)
-    speed = np.where(extrude, np.where(layer == layer.min(), f.first_layer_mm_s, f.print_mm_s),
-                     f.travel_mm_s)
+    speed = move_speeds(layer, extrude, f)
     drot[1:] = np.maximum(np.abs(np.diff(b)), np.abs(np.diff(c)))
     return {"xyz": xyz, "b": b, "c": c, "de": de, "dt": np.maximum(seg / speed, drot / f.rotary_deg_s),
             "drot": drot, "extrude": extrude, "layer": layer, "source": first(np.arange(len(tp)), [-1]),
-            "singular": singular, "out": out}
+            "singular": singular}
 
 
 def _split_rotary(mv: dict[str, np.ndarray], max_step_deg: float) -> dict[str, np.ndarray]:
@@ -209,9 +222,7 @@ def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None) -
     kind = np.r_[np.full(n_s, TRAVEL), program.kind[:1], RETRACT, program.kind[1:], RETRACT, np.full(n_e, TRAVEL)]
     de_prog = np.diff(program.extruder, prepend=0.0)
     de = np.r_[np.zeros(n_s), de_prog[:1], ex.prime_mm, de_prog[1:], -ex.retract_mm, np.zeros(n_e)]
-    seg = np.linalg.norm(np.diff(machine[:, :3], axis=0, prepend=machine[:1, :3]), axis=1)
-    rot = np.abs(np.diff(machine[:, 3:5], axis=0, prepend=machine[:1, 3:5])).max(axis=1)
-    travel_t = np.maximum(seg / f.travel_mm_s, rot / f.rotary_deg_s)
+    travel_t = _travel_times(machine, f)
     t_prog = program.time_s.copy()
     t_prog[0] = travel_t[n_s]                      # the approach now comes from the safe height
     time_s = np.r_[travel_t[:n_s], t_prog[:1], ex.prime_mm / f.retract_mm_s, t_prog[1:], ex.retract_mm / f.retract_mm_s,
@@ -233,7 +244,7 @@ def merge_short_moves(tp: Toolpaths, profile: MachineProfile) -> tuple[Toolpaths
     n = len(tp)
     if f.min_move_s <= 0 or n < 3:
         return tp, 0
-    speed = np.where(tp.layer == tp.layer.min(), f.first_layer_mm_s, f.print_mm_s)
+    speed = move_speeds(tp.layer, np.ones(n, bool), f)                 # the inner moves considered all extrude
     turn = np.zeros(n)
     turn[1:] = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tp.axis[1:], tp.axis[:-1]), -1.0, 1.0)))
     seg = tp.segment_lengths()
@@ -317,12 +328,12 @@ def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, in
     at = np.flatnonzero(np.diff(turns) != 0) + 1
     if not len(at):
         return replace(program, machine=machine), 0
-    pieces: dict[str, list] = {k: [] for k in ("machine", "de", "time_s", "kind", "source", "layer")}
-    de = np.diff(program.extruder, prepend=0.0)
+    cols = {"machine": machine, "de": np.diff(program.extruder, prepend=0.0), "time_s": program.time_s,
+            "kind": program.kind, "source": program.source, "layer": program.layer}
+    pieces: dict[str, list] = {k: [] for k in cols}
     prev = 0
     for j in at:
-        for key, arr in (("machine", machine), ("de", de), ("time_s", program.time_s), ("kind", program.kind),
-                         ("source", program.source), ("layer", program.layer)):
+        for key, arr in cols.items():
             pieces[key].append(arr[prev:j])
         p = machine[j - 1]
         up = np.r_[p[:2], max(z_safe, p[2]), p[3:5]]
@@ -331,9 +342,7 @@ def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, in
         down = np.r_[p[:4], turned[4]]
         block = np.vstack([p, up, spin, down, down])
         m = len(block)
-        seg = np.linalg.norm(np.diff(block[:, :3], axis=0, prepend=block[:1, :3]), axis=1)
-        rot = np.abs(np.diff(block[:, 3:5], axis=0, prepend=block[:1, 3:5])).max(axis=1)
-        t = np.maximum(seg / f.travel_mm_s, rot / f.rotary_deg_s)
+        t = _travel_times(block, f)
         t[0], t[-1] = ex.retract_mm / f.retract_mm_s, ex.prime_mm / f.retract_mm_s
         pieces["machine"].append(block)
         pieces["de"].append(np.r_[-ex.retract_mm, np.zeros(m - 2), ex.prime_mm])
@@ -342,8 +351,7 @@ def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, in
         pieces["source"].append(np.full(m, -1, np.int64))
         pieces["layer"].append(np.full(m, program.layer[j - 1], np.int64))
         prev = j
-    for key, arr in (("machine", machine), ("de", de), ("time_s", program.time_s), ("kind", program.kind),
-                     ("source", program.source), ("layer", program.layer)):
+    for key, arr in cols.items():
         pieces[key].append(arr[prev:])
     cat = {k: np.concatenate(v) for k, v in pieces.items()}
     mach = cat["machine"]

@@ -52,10 +52,9 @@ def hold_beads(tp: Toolpaths, bead_range: tuple[float, float], radius: float | N
         deficit = np.where(thin, gap[idx], 0.0)
         prev = (cKDTree(tp.xyz[idx]), deficit) if deficit.any() else None
     summary = _summary(gap, printing, extrude, carried_in, lo, hi)
-    thin_all, thick_all = printing & (gap < lo), printing & (gap > hi)
-    thickness = np.where(on, np.minimum(gap, hi), tp.thickness)
-    if not (thin_all.any() or thick_all.any() or carried_in.any()):
+    if summary["fraction_outside_range"] == 0.0 and not carried_in.any():
         return tp, summary
+    thickness = np.where(on, np.minimum(gap, hi), tp.thickness)
     return replace(tp, thickness=thickness, extrude=extrude, attrs=dict(tp.attrs)), summary
 
 
