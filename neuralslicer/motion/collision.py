@@ -226,6 +226,34 @@ def _open_queries(material: _TreeSet, hit: BoolArray, xyz: FloatArray, axis: Flo
             yield pts, tree, centres, rc, todo
 
 
+def _ball_pairs(tree: cKDTree, centres: FloatArray, radius: float, budget: int
+                ) -> Iterator[tuple[IndexArray, IndexArray]]:
+    """(row, point) pairs of tree points within ``radius`` of ``centres`` (k, 3), rows indexing the centres, in
+    chunks of about ``budget`` pairs (counted first in C, so centres with nothing near cost one query each)."""
+    counts = tree.query_ball_point(centres, radius, return_length=True)
+    rows = np.flatnonzero(counts > 0)
+    counts = counts[rows]
+    bounds = np.searchsorted(np.cumsum(counts), np.arange(budget, counts.sum() + budget, budget))
+    start = 0
+    for stop in np.unique(np.concatenate([bounds + 1, [len(rows)]])):
+        stop = int(min(max(stop, start + 1), len(rows)))
+        if stop <= start:
+            continue
+        ids = rows[start:stop]
+        start = stop
+        lists = tree.query_ball_point(centres[ids], radius, return_sorted=False)
+        n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+        yield np.repeat(ids, n_c), np.fromiter(chain.from_iterable(lists), np.int64, int(n_c.sum()))
+
+
+def _mark(hit: BoolArray, loc: FloatArray, pose: IndexArray, witness: FloatArray) -> None:
+    """Mark the poses not hit yet among ``pose`` (k,), each with its first witness point (k, 3)."""
+    first = np.unique(pose, return_index=True)[1]
+    new = ~hit[pose[first]]
+    hit[pose[first][new]] = True
+    loc[pose[first][new]] = witness[first][new]
+
+
 def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: float,
                budget: int = 2_000_000) -> tuple[BoolArray, FloatArray]:
     """Exact test of material points against the head at each pose, candidates from ball queries."""
@@ -241,27 +269,10 @@ def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: No
     if nozzle.holder_length > 0:
         _holder_hits(material, xyz, axis, nozzle, hit, loc, budget)
     for pts, tree, centres, rc, todo in _open_queries(material, hit, xyz, axis, head_parts(nozzle, min_height, False)):
-        counts = tree.query_ball_point(centres[todo], rc, return_length=True)
-        todo, counts = todo[counts > 0], counts[counts > 0]
-        # chunks of poses with a bounded number of candidate pairs
-        bounds = np.searchsorted(np.cumsum(counts), np.arange(budget, counts.sum() + budget, budget))
-        start = 0
-        for stop in np.unique(np.concatenate([bounds + 1, [len(todo)]])):
-            stop = int(min(max(stop, start + 1), len(todo)))
-            if stop <= start:
-                continue
-            ids = todo[start:stop]
-            lists = tree.query_ball_point(centres[ids], rc, return_sorted=False)
-            n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-            cand = np.fromiter(chain.from_iterable(lists), np.int64, int(n_c.sum()))
-            pose = np.repeat(ids, n_c)
+        for row, cand in _ball_pairs(tree, centres[todo], rc, budget):
+            pose = todo[row]
             inside = _inside_head(pts[cand] - xyz[pose], axis[pose], nozzle, min_height)
-            hp, hq = pose[inside], cand[inside]
-            first = np.unique(hp, return_index=True)[1]
-            new = ~hit[hp[first]]
-            hit[hp[first][new]] = True
-            loc[hp[first][new]] = pts[hq[first][new]]
-            start = stop
+            _mark(hit, loc, pose[inside], pts[cand[inside]])
     return hit, loc
 
 
@@ -279,28 +290,11 @@ def _holder_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: 
             return
         rb = reach + float(cells.radius.max(initial=0.0))
         centres = xyz[todo] + centre_h * axis[todo]
-        counts = cells.tree.query_ball_point(centres, rb, return_length=True)
-        todo, centres, counts = todo[counts > 0], centres[counts > 0], counts[counts > 0]
-        cells_per_chunk = max(budget // 64, 1)
-        bounds = np.searchsorted(np.cumsum(counts), np.arange(cells_per_chunk, counts.sum() + cells_per_chunk,
-                                                              cells_per_chunk))
-        start = 0
-        for stop in np.unique(np.concatenate([bounds + 1, [len(todo)]])):
-            stop = int(min(max(stop, start + 1), len(todo)))
-            if stop <= start:
-                continue
-            ids = np.arange(start, stop)
-            start = stop
-            lists = cells.tree.query_ball_point(centres[ids], rb, return_sorted=False)
-            n_c = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-            cell = np.fromiter(chain.from_iterable(lists), np.int64, int(n_c.sum()))
-            pose = np.repeat(todo[ids], n_c)
+        for row, cell in _ball_pairs(cells.tree, centres, rb, max(budget // 64, 1)):
+            pose = todo[row]
             sd = _holder_distance(cells.centroid[cell] - xyz[pose], axis[pose], nozzle)
-            full = sd < -cells.radius[cell]
-            where = cells.order[cells.start[cell[full]]]                 # a point of each cell wholly inside
-            first = np.unique(pose[full], return_index=True)[1]
-            hit[pose[full][first]] = True
-            loc[pose[full][first]] = pts[where[first]]
+            full = sd < -cells.radius[cell]                               # the cell's ball lies in the holder
+            _mark(hit, loc, pose[full], pts[cells.order[cells.start[cell[full]]]])
             edge = (np.abs(sd) <= cells.radius[cell]) & ~hit[pose]
             if not edge.any():
                 continue
@@ -310,11 +304,7 @@ def _holder_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: 
             point = cells.order[np.repeat(cells.start[e_cell], n_p) + offset]
             p_pose = np.repeat(e_pose, n_p)
             inside = _in_holder(pts[point] - xyz[p_pose], axis[p_pose], nozzle)
-            hp, hq = p_pose[inside], point[inside]
-            first = np.unique(hp, return_index=True)[1]
-            new = ~hit[hp[first]]
-            hit[hp[first][new]] = True
-            loc[hp[first][new]] = pts[hq[first][new]]
+            _mark(hit, loc, p_pose[inside], pts[point[inside]])
 
 
 def head_collisions(xyz: FloatArray, axis: FloatArray, material: FloatArray, nozzle: Nozzle,
