@@ -64,13 +64,13 @@ def _layer_segments(program: MachineProgram, first: int = 0) -> Iterator[tuple[i
     elapsed = np.concatenate([[0.0], np.cumsum(move_times(program.machine, program.time_s, program.profile.feeds))])
     total = max(float(elapsed[-1]), 1e-9)       # the estimate under the axis limits (motion/timing.py)
     n_layers = len(bounds) - 1
+    iso = program.attrs.get("isovalues") or []
     for k in range(n_layers):
         a, b = int(bounds[k]), int(bounds[k + 1])
         a = max(a, first)
         if a >= b:
             continue
         z = program.part_xyz[a:b, 2]
-        iso = program.attrs.get("isovalues") or []
         li = int(layer[a])
         info = {"number": k + 1, "count": n_layers, "z": (float(z.min()), float(z.max())),
                 "isovalue": iso[li] if 0 <= li < len(iso) else None,
