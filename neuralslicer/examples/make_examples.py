@@ -11,6 +11,9 @@ Writes, each in its own folder with a ``model.yaml`` spec:
 - ``shell/``: an open wavy vase surface thickened into a 2 mm shell (``shell``).
 - ``hybrid/``: a closed base plate (``mesh``), an open arch (``shell``), a strut lattice
   (``struts``) and two tube loops (``tubes``) in one model, genus > 5.
+- ``points/``: a point cloud of a small knob block with a through hole (``points``): 3500 points
+  with normals (``part.xyz``, used by ``spec.yaml``) and a noisy 3000-point "scan" without normals
+  (``part_scan.pcd``, to slice directly).
 """
 from __future__ import annotations
 
@@ -225,8 +228,79 @@ components:
 """)
 
 
+def knob_block_sdf(p: np.ndarray) -> np.ndarray:
+    """Signed distance (approximate near blends) of a 30 x 20 x 10 mm rounded block with a knob
+    on top and a chamfered vertical through hole, z up from 0."""
+    q = np.abs(p - [15.0, 10.0, 5.0]) - ([15.0, 10.0, 5.0] - np.float64(2.0))
+    block = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0) - 2.0
+    knob = np.linalg.norm(p - [9.0, 10.0, 8.0], axis=1) - 6.0
+    k = 2.0  # polynomial smooth union of block and knob
+    h = np.clip(0.5 + 0.5 * (knob - block) / k, 0, 1)
+    body = knob * (1 - h) + block * h - k * h * (1 - h)
+    hole = _cyl_sdf(p, [22.0, 10.0, 0.0], 2, 3.5)
+    k = 1.0  # smooth subtraction of the hole
+    h = np.clip(0.5 - 0.5 * (body + hole) / k, 0, 1)
+    return body * (1 - h) - hole * h + k * h * (1 - h)
+
+
+def sample_sdf_surface(sdf, lo, hi, count: int, seed: int, voxel: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points ``(n, 3)`` uniformly (by area) on ``sdf = 0`` and their unit normals ``(n, 3)``."""
+    from neuralslicer.model.grid import level_set_mesh
+
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    n = np.ceil((hi - lo) / voxel).astype(int) + 1
+    grid = np.stack(np.meshgrid(*[lo[i] + voxel * np.arange(n[i]) for i in range(3)], indexing="ij"), -1)
+    v, f = level_set_mesh(sdf(grid.reshape(-1, 3)).reshape(tuple(n)), lo, voxel)
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(f), size=count, p=area / area.sum())
+    u, w = rng.random((2, count))
+    flip = u + w > 1
+    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+    t = tri[face]
+    p = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
+
+    def gradient(x: np.ndarray) -> np.ndarray:
+        """Central-difference gradient of the sdf."""
+        e = 1e-4
+        return np.stack([(sdf(x + e * d) - sdf(x - e * d)) / (2 * e) for d in np.eye(3)], axis=1)
+
+    for _ in range(3):  # Newton steps onto the zero level
+        g = gradient(p)
+        p = p - (sdf(p) / np.maximum(np.einsum("ij,ij->i", g, g), 1e-12))[:, None] * g
+    g = gradient(p)
+    return p, g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def write_points(d: Path) -> None:
+    """The point-cloud example: part.xyz (with normals), part_scan.pcd (noisy, no normals), spec.yaml."""
+    lo, hi = [-1.0, -1.0, -1.0], [31.0, 21.0, 16.0]
+    p, n = sample_sdf_surface(knob_block_sdf, lo, hi, 3500, seed=1)
+    lines = ["# knob block with a through hole, 30 x 20 x 14 mm, z up: 3500 points with outward normals",
+             "# x y z nx ny nz (mm)"]
+    lines += [f"{a:.3f} {b:.3f} {c:.3f} {u:.4f} {v:.4f} {w:.4f}" for (a, b, c), (u, v, w) in zip(p, n)]
+    (d / "part.xyz").write_text("\n".join(lines) + "\n")
+    p, _ = sample_sdf_surface(knob_block_sdf, lo, hi, 3000, seed=2)
+    p = p + np.random.default_rng(3).normal(scale=0.03, size=p.shape)
+    header = ["# the same knob block as a noisy scan (sigma 0.03 mm), no normals", "VERSION .7",
+              "FIELDS x y z", "SIZE 4 4 4", "TYPE F F F", "COUNT 1 1 1", f"WIDTH {len(p)}", "HEIGHT 1",
+              "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {len(p)}", "DATA ascii"]
+    (d / "part_scan.pcd").write_text("\n".join(header + [f"{a:.3f} {b:.3f} {c:.3f}" for a, b, c in p]) + "\n")
+    (d / "spec.yaml").write_text("""# A point cloud of a knob block with a through hole, reconstructed into a closed solid
+# (normals -> winding number -> marching cubes -> projection; see neuralslicer/model/points.py).
+# The normal-free scan slices directly too: neuralslicer slice part_scan.pcd --out runs/scan
+up: z
+components:
+  - type: points
+    file: part.xyz        # x y z nx ny nz per line
+    normals: auto         # the file's normals (estimate: PCA + spanning-tree orientation)
+    resolution: 96        # grid cells along the longest side for the reconstruction
+""")
+
+
 EXAMPLES = {"bracket": write_bracket, "lattice": write_lattice, "tubes": write_tubes, "shell": write_shell,
-            "hybrid": write_hybrid}
+            "hybrid": write_hybrid, "points": write_points}
 
 
 def main() -> None:

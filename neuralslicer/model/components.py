@@ -133,7 +133,7 @@ class MeshComponent(Component):
         if enclosed_volume(vertices, faces) < 0:
             faces = np.ascontiguousarray(faces[:, ::-1])
         self.vertices, self.faces = vertices, faces
-        self.source_kind = source_kind  # "mesh" or "tet"
+        self.source_kind = source_kind  # "mesh", "tet" or "points" (reconstructed from a point cloud)
         self.tets = None if tets is None else np.asarray(tets, dtype=np.int64)
         self._dist = _TriangleDistance(vertices, faces)
 
@@ -191,7 +191,7 @@ class MeshComponent(Component):
         return out
 
     def attrs(self) -> dict:
-        """``{"type": "mesh" | "tet"}``."""
+        """``{"type": "mesh" | "tet" | "points"}``."""
         return {"type": self.source_kind}
 
     @classmethod
@@ -386,7 +386,7 @@ class TubesComponent(Component):
 
 
 COMPONENT_TYPES: dict[str, type[Component]] = {
-    "mesh": MeshComponent, "tet": MeshComponent, "shell": ShellComponent,
+    "mesh": MeshComponent, "tet": MeshComponent, "points": MeshComponent, "shell": ShellComponent,
     "struts": StrutsComponent, "tubes": TubesComponent,
 }
 

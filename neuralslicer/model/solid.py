@@ -16,6 +16,7 @@ from neuralslicer.model.components import (
 )
 from neuralslicer.model.convolution import radius_from_threshold
 from neuralslicer.model.grid import level_set_mesh
+from neuralslicer.model.points import check_cloud, reconstruct
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.topology import genus
 from neuralslicer.types import FloatArray
@@ -305,6 +306,22 @@ def _tet_boundary(path, vertices: FloatArray, tets) -> tuple[FloatArray, np.ndar
     return vertices, tets, boundary_faces(tets)
 
 
+def _points_component(cs, frame, s: float) -> MeshComponent:
+    """Read a point cloud, reconstruct its closed surface (:mod:`neuralslicer.model.points`), as a mesh."""
+    path = cs.file
+    p, n = io.read_points(path)
+    if cs.normals == "given" and n is None:
+        raise InputError(path, "'normals: given' but the file has no normals; add nx ny nz or use "
+                               "'normals: auto' to estimate them")
+    if cs.normals == "estimate":
+        n = None
+    p, n = check_cloud(path, p, n)
+    if n is not None:  # rotate with the points (frame scales by s too)
+        n = frame(n) / s
+    v, f = reconstruct(frame(p), n, k=cs.k, resolution=cs.resolution, where=path)
+    return MeshComponent(v, f, source_kind="points")
+
+
 def implicit_solid(spec: ModelSpec) -> Solid:
     """Build the implicit solid H of a model spec: read every file, rotate to the build frame, scale to mm."""
     rot = up_rotation(spec.up)
@@ -345,6 +362,8 @@ def _build_component(cs, frame, s: float) -> Component:
     if cs.type == "shell":
         v, f = io.read_surface(path)
         return ShellComponent(frame(v), f, cs.thickness * s)
+    if cs.type == "points":
+        return _points_component(cs, frame, s)
     seg = io.check_segments(path, io.read_segments(path))
     seg = frame(seg.reshape(-1, 3)).reshape(-1, 2, 3)
     if cs.type == "struts":

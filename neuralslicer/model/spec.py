@@ -11,7 +11,8 @@ Minimal form (paths are relative to the spec file's folder)::
         file: part.stl
 
 Every length in the spec (thickness, radius, wall, smooth_union, platform z, surface_voxel) is in
-``units``, like the coordinates of the files; everything is converted to millimetres on load.
+``units``, like the coordinates of the files; everything is converted to millimetres on load. The
+``k`` and ``resolution`` of a ``points`` component are counts, not lengths.
 """
 from __future__ import annotations
 
@@ -25,7 +26,9 @@ from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
 
 from neuralslicer.errors import InputError
 from neuralslicer.fea.spec import FEASpec
-from neuralslicer.model.io import SURFACE_SUFFIXES, TET_SUFFIXES, VOLUME_SUFFIXES
+from neuralslicer.model.io import (
+    POINT_SUFFIXES, SURFACE_SUFFIXES, TET_SUFFIXES, VOLUME_SUFFIXES, ply_face_count,
+)
 
 #: Length of one spec unit in millimetres.
 UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -100,12 +103,29 @@ class TubesComponentSpec(_Strict):
         return self
 
 
+class PointsComponentSpec(_Strict):
+    """A point cloud (.xyz, .pcd, .ply without faces) reconstructed into a closed surface.
+
+    See :mod:`neuralslicer.model.points` for the method: normals (given or estimated by PCA and
+    oriented along a spanning tree), winding number for inside/outside, marching cubes, projection.
+    """
+
+    type: Literal["points"]
+    file: Path = Field(description="Point cloud file: .xyz ('x y z [nx ny nz]' lines), .pcd or .ply.")
+    normals: Literal["auto", "given", "estimate"] = Field(
+        "auto", description="auto: the file's normals when it has them, else estimated; given: the "
+        "file's (an error without); estimate: ignore the file's normals.")
+    k: int = Field(16, ge=4, le=100, description="Neighbours for normal estimation. Default 16.")
+    resolution: int = Field(96, ge=16, le=512, description="Grid cells along the longest side of the "
+                            "cloud's bounding box for the reconstruction. Default 96.")
+
+
 ComponentSpec = Annotated[
     Union[MeshComponentSpec, TetComponentSpec, ShellComponentSpec, StrutsComponentSpec,
-          TubesComponentSpec],
+          TubesComponentSpec, PointsComponentSpec],
     Field(discriminator="type"),
 ]
-COMPONENT_TAGS = ("mesh", "tet", "shell", "struts", "tubes")
+COMPONENT_TAGS = ("mesh", "tet", "shell", "struts", "tubes", "points")
 
 
 class PlatformPlane(_Strict):
@@ -180,6 +200,8 @@ def _message(err: dict) -> str:
         return f"must be > {ctx.get('gt')}"
     if kind == "greater_than_equal":
         return f"must be >= {ctx.get('ge')}"
+    if kind == "less_than_equal":
+        return f"must be <= {ctx.get('le')}"
     if kind == "missing":
         return "missing required key"
     if kind == "extra_forbidden":
@@ -272,20 +294,26 @@ def load_spec(path: str | Path) -> ModelSpec:
 def spec_for_file(path: str | Path, up: str = "z", units: str = "mm") -> ModelSpec:
     """Spec for a single model file given on the command line (type from the extension).
 
-    ``.stl/.obj/.ply/.off`` -> ``mesh``; ``.tet`` and meshio volume formats -> ``tet``;
-    ``.yaml/.yml`` -> :func:`load_spec` (``up``/``units`` then come from the file).
+    ``.stl/.obj/.off`` and ``.ply`` with faces -> ``mesh``; ``.xyz/.pcd`` and ``.ply`` without
+    faces -> ``points``; ``.tet`` and meshio volume formats -> ``tet``; ``.yaml/.yml`` ->
+    :func:`load_spec` (``up``/``units`` then come from the file).
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in SPEC_SUFFIXES:
         return load_spec(path)
-    if suffix in SURFACE_SUFFIXES:
+    if suffix == ".ply":
+        kind = "points" if ply_face_count(path) == 0 else "mesh"
+    elif suffix in SURFACE_SUFFIXES:
         kind = "mesh"
+    elif suffix in POINT_SUFFIXES:
+        kind = "points"
     elif suffix in TET_SUFFIXES or suffix in VOLUME_SUFFIXES:
         kind = "tet"
     else:
         raise InputError(path, f"unknown model format {suffix!r}; expected a mesh "
-                               f"({', '.join(SURFACE_SUFFIXES)}), a volume mesh "
+                               f"({', '.join(SURFACE_SUFFIXES)}), a point cloud "
+                               f"({', '.join(POINT_SUFFIXES)}), a volume mesh "
                                f"({', '.join(TET_SUFFIXES + VOLUME_SUFFIXES)}) or a spec (.yaml)")
     if not path.is_file():
         raise InputError(path, "no such file")
