@@ -1,6 +1,7 @@
 """The cage: a tetrahedral mesh of an offset of the solid, with a user-chosen element count."""
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,9 +53,16 @@ class Cage:
         """Rebuild from store arrays."""
         return cls(arrays["vertices"], arrays["tets"].astype(np.int64), attrs["offset"], attrs["edge_length"])
 
-    def summary(self) -> dict[str, float | int]:
-        """Genus of the cage boundary and the cage volume (mm^3), for the record."""
-        return {"genus": tet_boundary_genus(self.tets), "volume_mm3": float(tet_volumes(self.vertices, self.tets).sum())}
+    def summary(self) -> dict[str, float | int | str]:
+        """Genus of the cage boundary, the cage volume (mm^3) and the content digest, for the record."""
+        return {"genus": tet_boundary_genus(self.tets), "volume_mm3": float(tet_volumes(self.vertices, self.tets).sum()),
+                "sha256": self.sha256()}
+
+    def sha256(self) -> str:
+        """Digest of the cage's content (vertices as float64, tets as int64): equal digests, equal cages."""
+        h = hashlib.sha256(np.ascontiguousarray(self.vertices, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(self.tets, dtype=np.int64).tobytes())
+        return h.hexdigest()
 
     def surface(self) -> trimesh.Trimesh:
         """The cage boundary as a triangle mesh."""

@@ -144,7 +144,8 @@ def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 
 def metrics_entries(record: dict[str, Any]) -> dict[str, Any]:
     """The scalar `provenance.*` entries of a record for metrics.json (no spec/config bodies, no command)."""
-    keep = {k: record[k] for k in ("inputs", "config_sha256", "seeds", "versions", "device", "code") if k in record}
+    keep = {k: record[k] for k in ("inputs", "config_sha256", "cage_sha256", "seeds", "versions", "device", "code")
+            if k in record}
     return {f"provenance.{k}": v for k, v in flatten(keep).items() if not isinstance(v, (list, dict))}
 
 

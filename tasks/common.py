@@ -28,6 +28,7 @@ STEP_VERSIONS = {
     "fea": "1",
     "stress_samples": "1",
     "field": "2",
+    "field_s3": "1",
     "field_blend": "1",
     "layers": "5",
     "toolpaths": "6",

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 from prefect import get_run_logger
 
-from neuralslicer.cage import CageConfig, make_cage
+from neuralslicer.baselines.s3 import S3Config, optimise_s3
+from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
 from neuralslicer.layers import LayerConfig, slice_layers
 from neuralslicer.model.solid import implicit_solid
@@ -17,11 +18,12 @@ from neuralslicer.samples import surface_samples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
+from storage.content_cache import ContentCache, cache_root
 from tasks.codec import (encode_print, read_cage, read_field, read_field_history, read_layers, read_samples,
                          read_solid, read_stress, read_user_field)
 from tasks.common import pipeline_task
 from tasks.optimise import run_optimisation
-from tasks.progress import Progress
+from tasks.progress import Progress, say
 
 
 @pipeline_task("model", exclude=("spec",), retries=0)
@@ -52,11 +54,26 @@ def samples_task(out: ArtifactRef, store: str, model: ArtifactRef, config: Sampl
 def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: ArtifactRef, config: CageConfig
               ) -> tuple[dict, dict]:
     """Tetrahedralized offset of the solid at the target element count, containing B and interior points."""
+    cache = ContentCache(cache_root())
+    hit = cache.load("cage", out.digest)
+    if hit is not None and _intact_cage(*hit):
+        arrays, attrs = hit
+        say(f"cage: the cage of these inputs from the cage cache ({cache.root}), {attrs['n_elements']} tets")
+        return arrays, {k: v for k, v in attrs.items() if k != "cache_key"}
     cage = make_cage(read_solid(model), read_samples(samples).points, config)
     arrays, attrs = cage.to_arrays()
     attrs.update(cage.summary())
     get_run_logger().info("cage: %d tets, %d vertices, genus %d", len(cage.tets), len(cage.vertices), attrs["genus"])
+    cache.save("cage", out.digest, arrays, attrs)  # fTetWild is not deterministic: the same inputs reuse this cage
     return arrays, attrs
+
+
+def _intact_cage(arrays: dict, attrs: dict) -> bool:
+    """True when a cached cage's content matches the digest recorded with it."""
+    try:
+        return Cage.from_arrays(arrays, attrs).sha256() == attrs["sha256"]
+    except (KeyError, TypeError, ValueError):
+        return False
 
 
 @pipeline_task("field")
@@ -70,6 +87,20 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
         return arrays, {**attrs, "objectives": [], "steps": 0}
     return run_optimisation(out, c, read_samples(samples), read_stress(stress) if stress is not None else None,
                             objectives, config, read_solid(model), *read_user_field(user_field))
+
+
+@pipeline_task("field_s3")
+def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
+                  stress: ArtifactRef | None, objectives: list[str], config: S3Config) -> tuple[dict, dict]:
+    """The S3-Slicer baseline's field G: per-element rotations optimised in the deformed space, realised by ARAP."""
+    c = read_cage(cage)
+    with Progress("s3", total=config.steps) as bar:
+        result = optimise_s3(c.vertices, c.tets, read_samples(samples), read_stress(stress) if stress is not None else None,
+                             objectives, config, read_solid(model).platform_z,
+                             progress=lambda step, info: bar.update(step + 1, total=float(info["total"])))
+    get_run_logger().info("s3: %d steps, %s", result.steps, result.summary().get("satisfaction"))
+    arrays, attrs = result.to_arrays()
+    return arrays, {**attrs, "objectives": sorted(set(objectives) & {"sf", "sr"}), "wall_time_s": result.wall_time_s}
 
 
 @pipeline_task("field_blend")

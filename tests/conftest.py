@@ -12,6 +12,8 @@ import trimesh
 
 _HOME = tempfile.mkdtemp(prefix="neuralslicer-prefect-")
 os.environ.setdefault("PREFECT_HOME", _HOME)
+# the cage cache shared across stores (storage/content_cache.py): one per test session, never ~/.cache
+os.environ["NEURALSLICER_CACHE_DIR"] = tempfile.mkdtemp(prefix="neuralslicer-cache-")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("DO_NOT_TRACK", "1")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")

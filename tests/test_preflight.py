@@ -189,3 +189,17 @@ def test_studies_run_the_same_checks(tmp_path, part, capsys):
     big = scaled(tmp_path, 1000.0)                               # m read as mm, in a batch
     refuse(capsys, ["study", "batch", str(part), str(big), "--out", str(tmp_path / "b")], "part_x1000")
     assert not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize("name, expected", [("environ.txt", ("environ.txt:1", "field(s)")),
+                                            ("environ.obj", ("environ.obj", "no polyline"))])
+def test_a_file_named_by_mistake_is_never_echoed(tmp_path, capsys, name, expected):
+    """A spec naming the wrong file as struts (the environment of a process, say): refused by its line number and
+    shape, never by its content."""
+    secret = tmp_path / name
+    secret.write_text("HOME=/root\x00TOKEN=hunter2-secret\x00PATH=/usr/bin\n")
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(yaml.safe_dump({"components": [{"type": "struts", "file": name, "radius": 1.0}]}))
+    err = refuse(capsys, ["slice", str(spec), "--out", str(tmp_path / "out")], *expected)
+    assert "hunter2" not in err and "HOME" not in err and "TOKEN" not in err
+    assert not (tmp_path / "out").exists()
