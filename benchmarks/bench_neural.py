@@ -193,14 +193,19 @@ def ring_inputs(n_elements: int = 5000, n_samples: int = 8000) -> dict[str, np.n
             "K": B.knn, "F": B.on_platform, "pz": np.float64(solid.platform_z)}
 
 
+def cached_ring_inputs(cache: Path | None) -> dict[str, np.ndarray]:
+    """ring_inputs(), kept in (and read back from) an .npz when a cache path is given."""
+    if cache is not None and cache.exists():
+        return dict(np.load(cache))
+    d = ring_inputs()
+    if cache is not None:
+        np.savez(cache, **d)
+    return d
+
+
 def bench_ring(kinds: list[str], cache: Path | None) -> list[dict]:
     """Ring, SF only, default settings: overhang fraction vs planar, time, per initial guess."""
-    if cache is not None and cache.exists():
-        d = dict(np.load(cache))
-    else:
-        d = ring_inputs()
-        if cache is not None:
-            np.savez(cache, **d)
+    d = cached_ring_inputs(cache)
     rows = []
     for kind in kinds:
         cfg = NeuralConfig.model_validate({"init": {"kind": kind}})

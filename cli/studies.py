@@ -1,4 +1,4 @@
-"""Command line of studies and comparisons: `neuralslicer study initial-guess|cages|batch` and `neuralslicer compare`."""
+"""Command line of studies and comparisons: `neuralslicer study initial-guess|cages|batch|methods|ablation` and `neuralslicer compare`."""
 from __future__ import annotations
 
 import argparse
@@ -57,7 +57,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     def job() -> int:
         prefect_environment()
         limit_threads()
-        from flows.studies import batch_study, cage_study, initial_guess_study
+        from flows.studies import ablation_study, batch_study, cage_study, initial_guess_study, methods_study
         from storage import ArtifactStore
 
         store = ArtifactStore(store_path).root
@@ -68,6 +68,10 @@ def cmd_study(args: argparse.Namespace) -> int:
             run = lambda: initial_guess_study(model=args.model, kinds=kinds, user_field=args.user_field, **common)  # noqa: E731
         elif args.study == "cages":
             run = lambda: cage_study(model=args.model, cage_elements=counts, **common)  # noqa: E731
+        elif args.study == "methods":
+            run = lambda: methods_study(model=args.model, **common)  # noqa: E731
+        elif args.study == "ablation":
+            run = lambda: ablation_study(model=args.model, **common)  # noqa: E731
         else:
             run = lambda: batch_study(models=list(args.models), **common)  # noqa: E731
         with cache_settings(store):
@@ -79,7 +83,8 @@ def cmd_study(args: argparse.Namespace) -> int:
 
 
 # columns of study.md left out of the terminal table (kept narrow)
-TERMINAL_SKIP = ("L_sf", "L_po", "L_sr", "L_hs", "L_hq", "L_ca", "overhang planar", "steps", "status")
+TERMINAL_SKIP = ("L_sf", "L_po", "L_sr", "L_hs", "L_hq", "L_ca", "overhang planar", "steps", "status", "cage genus",
+                 "SF supported", "overhang of the layers", "max strain planar", "worker", "method")
 
 
 def print_study(study: dict[str, Any]) -> None:
@@ -113,7 +118,7 @@ def _study_options(p: argparse.ArgumentParser) -> None:
 
 
 def add_study_parser(sub: Any) -> None:
-    """Options of `neuralslicer study initial-guess|cages|batch`."""
+    """Options of `neuralslicer study initial-guess|cages|batch|methods|ablation`."""
     p = sub.add_parser("study", help="studies fanned out over initial guesses, cage resolutions or models")
     studies = p.add_subparsers(dest="study", required=True, parser_class=ArgumentParser)
     ig = studies.add_parser("initial-guess", help="one model with the height, heat and a user-field initial guess")
@@ -131,7 +136,15 @@ def add_study_parser(sub: Any) -> None:
     bt.add_argument("--cage-elements", type=int, default=None,
                     help="target number of cage tets for every model")
     _study_options(bt)
-    for q in (ig, cg, bt):
+    mt = studies.add_parser("methods", help="one model sliced by the Neural Slicer, the S3-Slicer baseline and planar "
+                            "layers (fields printed as computed: collisions counted, not repaired)")
+    mt.add_argument("model", help="mesh, volume mesh (.tet) or model spec (.yaml)")
+    _study_options(mt)
+    ab = studies.add_parser("ablation", help="the Neural Slicer with and without PO, with per-element q and s "
+                            "instead of networks, and without SR when SR is on")
+    ab.add_argument("model", help="mesh, volume mesh (.tet) or model spec (.yaml)")
+    _study_options(ab)
+    for q in (ig, cg, bt, mt, ab):
         q.set_defaults(func=cmd_study)
 
 

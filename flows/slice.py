@@ -23,8 +23,8 @@ from tasks.common import run_step
 from tasks.export import export_task
 from tasks.fea import fea_task, stress_samples_task, verify_task
 from tasks.provenance import record_provenance
-from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, samples_task, solid_task,
-                         toolpaths_task)
+from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, s3_field_task, samples_task,
+                         solid_task, toolpaths_task)
 
 
 @dataclass
@@ -131,18 +131,20 @@ def slice_pipeline(
     # every field printed on the way to a collision-free program: (label, field, print)
     attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
     for attempt in range(config.collision_retries + 1):
-        field_ref = log.run(
-            field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
-            objectives=objectives, config=neural, user_field=user,
-        )
+        if config.method == "s3":
+            field_ref = log.run(s3_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
+                                objectives=objectives, config=config.s3)
+        else:
+            field_ref = log.run(field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
+                                objectives=objectives, config=neural, user_field=user)
         layers = log.run(layers_task, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
         printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
                            machine=machine, t_max=config.layers.t_max)
         factor = config.collision_smoothness_factor ** attempt
         attempts.append(("optimised" if attempt == 0 else f"re-optimised, harmonic x{factor:g} + CA", field_ref, printing))
         collisions = n_collisions(printing)
-        if collisions == 0 or not objectives or attempt == config.collision_retries:
-            break
+        if collisions == 0 or not objectives or attempt == config.collision_retries or config.method == "s3":
+            break  # S3's own answer to collisions is a smoother rotation field: the planar blend below serves it
         # the paper's fallback: smoother fields (larger harmonic weights) and the local collision term, then again
         neural = smoother(neural, config.collision_smoothness_factor)
         objectives = sorted(set(objectives) | {"ca"})
@@ -163,7 +165,8 @@ def slice_pipeline(
         attempts=attempts if len(attempts) > 1 else [],
     )
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
-                        extra={**(provenance_extra or {}), "store": store})
+                        extra={**(provenance_extra or {}), "store": store,
+                               "cage_sha256": ArtifactStore(store, create=False).attrs(cage.path).get("sha256")})
     provenance_digest = record_provenance(out_dir, store, name, record)
     add_to_metrics(out_dir, record)
     refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "fea": fea, "stress_samples": stress,

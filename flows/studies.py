@@ -161,6 +161,57 @@ def batch_branches(models: list[str], options: StudyOptions) -> list[Branch]:
     return branches
 
 
+def _variant(config: SliceConfig, where: str, **changes: object) -> SliceConfig:
+    """The configuration with dotted keys changed (``neural.network``), validated."""
+    data = config.model_dump()
+    for key, value in changes.items():
+        node = data
+        *path, last = key.split("__")
+        for k in path:
+            node = node[k]
+        node[last] = value
+    return SliceConfig.checked(data, where)
+
+
+def _as_printed(config: SliceConfig) -> SliceConfig:
+    """A comparison's configuration: every field printed as computed, its collisions counted, not repaired (no
+    re-optimisation, no planar blend), so each branch shows its own method."""
+    return _variant(config, "study", collision_retries=0, collision_fallback="none")
+
+
+def methods_branches(model: str, options: StudyOptions) -> list[Branch]:
+    """Branches of the methods study: the Neural Slicer, the S3-Slicer baseline and planar layers, on one cage."""
+    out, store = Path(options.out_dir), _store(options)
+    base = _as_printed(options.config)
+    variants = {"neural": _variant(base, "study", method="neural"), "s3": _variant(base, "study", method="s3"),
+                "planar": _variant(base, "study", objectives=[])}
+    return [Branch(name=name, model=model, up=options.up, config=cfg, out_dir=str(out / name), store=store,
+                   parameters={"method": "planar layers" if name == "planar" else name}) for name, cfg in variants.items()]
+
+
+def ablation_branches(model: str, options: StudyOptions) -> list[Branch]:
+    """Branches of the ablation study (Neural Slicer): the objectives asked for (default ones when none are), without
+    the point-overhang term PO, with per-element q and s instead of the Q-S networks, and without SR when SR is on."""
+    out, store = Path(options.out_dir), _store(options)
+    base = _as_printed(options.config)
+    objectives = base.objectives_for(load_branch_spec(model, options.up))
+    if not objectives:
+        raise InputError("--objectives", "the ablation study optimises: give objectives (e.g. sf,po), not none")
+    variants: dict[str, tuple[SliceConfig, dict]] = {
+        "full": (_variant(base, "study", objectives=objectives), {"objectives": ",".join(objectives)}),
+    }
+    if "po" in objectives:
+        fewer = [o for o in objectives if o != "po"]
+        variants["no_po"] = (_variant(base, "study", objectives=fewer), {"objectives": ",".join(fewer)})
+    variants["per_element"] = (_variant(base, "study", objectives=objectives, neural__network="per_element"),
+                               {"objectives": ",".join(objectives), "q, s": "per element"})
+    if "sr" in objectives:
+        fewer = [o for o in objectives if o != "sr"]
+        variants["no_sr"] = (_variant(base, "study", objectives=fewer), {"objectives": ",".join(fewer)})
+    return [Branch(name=name, model=model, up=options.up, config=cfg, out_dir=str(out / name), store=store,
+                   parameters={"q, s": "networks", **params}) for name, (cfg, params) in variants.items()]
+
+
 def _options(out_dir: str, store: str | None, config: SliceConfig | dict | None, up: str | None, dask: str | None,
              dask_workers: int, max_workers: int | None) -> StudyOptions:
     """StudyOptions from flow parameters (a config may come as a dict from a deployment)."""
@@ -212,3 +263,26 @@ def slice_model(model: str, out_dir: str, up: str | None = None, store: str | No
     with ExitStack() as stack:
         stack.enter_context(cache_settings(store_root))
         return slice_flow(spec=spec, out_dir=str(out), config=cfg, store=store_root)
+
+
+@flow(name="neuralslicer-study-methods")
+def methods_study(model: str, out_dir: str, up: str | None = None, store: str | None = None,
+                  config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
+                  max_workers: int | None = None) -> dict[str, Any]:
+    """Neural Slicer vs the S3-Slicer baseline vs planar layers on one model: the same cage, samples and
+    downstream stages; overhang held out and from the exported layers, collisions, layers, time (and strain with
+    --verify)."""
+    options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
+    branches = methods_branches(str(Path(model).resolve()), options)
+    return run_study("methods", f"Methods: Neural Slicer vs S3-Slicer vs planar, {Path(model).name}", branches, options)
+
+
+@flow(name="neuralslicer-study-ablation")
+def ablation_study(model: str, out_dir: str, up: str | None = None, store: str | None = None,
+                   config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
+                   max_workers: int | None = None) -> dict[str, Any]:
+    """The Neural Slicer's ablations on one model: PO on and off, Q-S networks vs per-element q and s, SR on and
+    off (with an FEA block); learning curves overlaid."""
+    options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
+    branches = ablation_branches(str(Path(model).resolve()), options)
+    return run_study("ablation", f"Ablation: {Path(model).name}", branches, options)

@@ -52,6 +52,14 @@ def table_rows(study: dict[str, Any]) -> list[dict[str, Any]]:
             row["SR satisfied"] = sat.get("sr_satisfied_fraction", m.get("sr.satisfied_fraction"))
         row["overhang"] = m.get("sf.overhang_area_fraction")
         row["overhang planar"] = m.get("sf.overhang_area_fraction_planar")
+        if study.get("kind") in ("methods", "ablation"):
+            row["overhang held out"] = m.get("sf.heldout.overhang_area_fraction")
+            row["overhang of the layers"] = m.get("sf.heldout.overhang_area_fraction_layers")
+            row["collisions"] = m.get("collisions")
+            if "fea.max_strain" in m:
+                row["max strain"] = m.get("fea.max_strain")
+                row["max strain planar"] = m.get("fea.max_strain_planar")
+            row["field s"] = field.get("optimise_wall_s")
         row["layers"] = m.get("n_layers")
         row["wall s"] = b.get("wall_s")
         row["worker"] = b["worker"].get("dask_worker") or f"pid {b['worker']['pid']}"
@@ -169,6 +177,12 @@ def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Bra
              "`SF supported`: area fraction of the surface samples B within the self-supporting angle; "
              "`overhang`: area fraction beyond it (`overhang planar`: the same for planar layers); "
              "`worker`: the Dask worker (or process) the branch ran in.", ""]
+    if study["kind"] in ("methods", "ablation"):
+        lines[-1:-1] = ["", "Every branch prints its field as computed (collisions counted, not repaired). `overhang held out`: "
+                        "the overhang area fraction at points of the surface mesh apart from the samples B, with the "
+                        "field's LPD; `overhang of the layers`: the same points judged by the exported layers' own "
+                        "normals; `max strain`: the transversely isotropic FEA of the printed part, filaments along the "
+                        "printed toolpaths (with --verify); `field s`: the field's computation time.", ""]
     for b in study["branches"]:
         if b.get("status") == "completed":
             lines.append(f"- `{b['name']}`: [{b['name']}/report.md]({b['name']}/report.md)")

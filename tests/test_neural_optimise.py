@@ -8,31 +8,21 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy.spatial import cKDTree
 
 from conftest import Planted
 from neuralslicer.neural import NeuralConfig, optimise_field
-from neuralslicer.samples import SurfaceSamples
 from neuralslicer.neural.device import resolve_device
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, user_field_on_cage
+from neuralslicer.neural.synthetic import sphere_samples
 from neuralslicer.tetmesh import box_tet_grid
 
 
-def _sphere_samples(n: int = 300, radius: float = 4.0, centre=(5.0, 5.0, 5.0), k: int = 10):
-    """Fibonacci samples of a sphere: points, outward normals, |A_p|, knn, bottom cap on platform."""
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    th = math.pi * (1 + 5**0.5) * i
-    nrm = np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], axis=1)
-    pts = np.asarray(centre) + radius * nrm
-    dist, knn = cKDTree(pts).query(pts, k=k + 1)
-    return pts, nrm, (dist[:, 1:] ** 2).mean(axis=1), knn[:, 1:], nrm[:, 2] < -0.95
 
 
 @pytest.fixture(scope="module")
 def problem():
     V, T = box_tet_grid((4, 4, 4), np.zeros(3), np.full(3, 10.0))
-    return V, T, _sphere_samples()
+    return V, T, sphere_samples()
 
 
 def _cfg(**optim) -> NeuralConfig:
@@ -44,8 +34,8 @@ def _cfg(**optim) -> NeuralConfig:
 
 
 def _run(problem, cfg, **kw):
-    V, T, (pts, nrm, area, knn, pf) = problem
-    return optimise_field(V, T, SurfaceSamples(pts, nrm, area, knn, pf), config=cfg, platform_z=0.0, **kw)
+    V, T, samples = problem
+    return optimise_field(V, T, samples, config=cfg, platform_z=0.0, **kw)
 
 
 class Killed(Exception):
@@ -109,7 +99,8 @@ def test_optimisation_reduces_sphere_overhang_and_logs_every_term(problem):
     sat = res.satisfaction
     assert sat["overhang_area_fraction"] < sat["planar_overhang_area_fraction"]
     # planar figure by hand: overhang iff -n_z > sin 45 among non-platform samples
-    _, _, (pts, nrm, area, knn, pf) = problem
+    _, _, samples = problem
+    nrm, area, pf = samples.normals, samples.areas, samples.on_platform
     over = (-nrm[:, 2] > math.sin(math.radians(45))) & ~pf
     assert abs(sat["planar_overhang_area_fraction"] - area[over].sum() / area[~pf].sum()) < 1e-12
     # the returned LPDs are the normalised gradients of the returned G
@@ -262,8 +253,7 @@ def test_the_late_overhang_target_applies_from_late_after(problem):
     """The constraint stop accepts target_overhang before late_after and target_overhang_late from it on."""
     from neuralslicer.neural.problem import FieldProblem
 
-    V, T, (pts, nrm, area, knn, pf) = problem
-    samples = SurfaceSamples(pts, nrm, area, knn, pf)
+    V, T, samples = problem
     planar = _run(problem, _cfg(max_steps=0)).satisfaction["planar_overhang_area_fraction"]
     assert planar > 0
 

@@ -10,7 +10,8 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from flows.branch import make_user_field
 from tasks.codec import store_user_field
 from flows.dask_support import StudyDaskTaskRunner
-from flows.studies import StudyOptions, batch_branches, cage_branches, initial_guess_branches, task_runner
+from flows.studies import (StudyOptions, ablation_branches, batch_branches, cage_branches, initial_guess_branches,
+                           methods_branches, task_runner)
 from flows.study_report import markdown_table, table_rows
 from cli.main import main as studies_main
 from neuralslicer.errors import InputError
@@ -32,6 +33,32 @@ def test_cage_branches_vary_only_the_element_count(tmp_path: Path) -> None:
     assert branches[1].out_dir == str(tmp_path / "s" / "cage_8000")
     with pytest.raises(InputError):
         cage_branches("m.stl", options, [])
+
+
+def test_methods_branches_print_each_method_as_computed(tmp_path: Path) -> None:
+    """neural / s3 / planar on one store, each printing its own field (no re-optimisation, no planar blend)."""
+    model = torus_file(tmp_path)
+    branches = methods_branches(str(model), StudyOptions(out_dir=str(tmp_path / "m"), config=tiny_config()))
+    assert [(b.name, b.config.method) for b in branches] == [("neural", "neural"), ("s3", "s3"), ("planar", "neural")]
+    assert branches[2].config.objectives == [] and branches[0].config.objectives == tiny_config().objectives
+    assert all(b.config.collision_retries == 0 and b.config.collision_fallback == "none" for b in branches)
+    assert len({b.store for b in branches}) == 1
+
+
+def test_ablation_branches_switch_one_thing_each(tmp_path: Path) -> None:
+    """full / no PO / per-element q, s (/ no SR when SR is on), from the objectives asked for or the defaults."""
+    model = torus_file(tmp_path)
+    branches = ablation_branches(str(model), StudyOptions(out_dir=str(tmp_path / "a"),
+                                                          config=tiny_config(objectives=["sf", "po", "sr"])))
+    assert {b.name: (b.config.objectives, b.config.neural.network) for b in branches} == {
+        "full": (["sf", "po", "sr"], "small"), "no_po": (["sf", "sr"], "small"),
+        "per_element": (["sf", "po", "sr"], "per_element"), "no_sr": (["sf", "po"], "small")}
+    unset = tiny_config().model_copy(update={"objectives": None})
+    defaults = ablation_branches(str(model), StudyOptions(out_dir=str(tmp_path / "b"), config=unset))
+    assert [b.name for b in defaults] == ["full", "no_po", "per_element"]  # the torus has no FEA block: no SR
+    assert defaults[0].config.objectives == ["sf", "po", "gc", "ca"]
+    with pytest.raises(InputError, match="objectives"):
+        ablation_branches(str(model), StudyOptions(out_dir=str(tmp_path / "c"), config=tiny_config(objectives=[])))
 
 
 def test_initial_guess_branches_and_generated_user_field(tmp_path: Path) -> None:

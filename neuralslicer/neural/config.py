@@ -9,10 +9,15 @@ from neuralslicer.motion.profile import Nozzle
 
 
 class NetworkConfig(BaseModel):
-    """SIREN size and initialisation for the quaternion and scale networks."""
+    """Parameterisation of q and s: SIREN networks (size, initialisation) or free per-element values."""
 
     model_config = ConfigDict(extra="forbid")
 
+    kind: Literal["siren", "per_element"] = Field(
+        "siren",
+        description="'siren': q(x), s(x) are SIREN networks (the paper); 'per_element': q and s are free "
+        "parameters per cage tet, optimised directly (the ablation; the SIREN sizes below are unused)",
+    )
     hidden_layers: int = Field(3, ge=1, description="number of hidden sine layers")
     hidden_features: int = Field(64, ge=4, description="neurons per hidden layer")
     omega_0: float = Field(
@@ -24,11 +29,13 @@ class NetworkConfig(BaseModel):
     )
 
 
-#: Network presets: ``default`` converges well on a CPU; ``paper`` is the published 10 x 512.
+#: Network presets: ``default`` converges well on a CPU; ``paper`` is the published 10 x 512;
+#: ``per_element`` optimises q, s per cage tet directly (the ablation "Q-S networks vs per-element q, s").
 NETWORK_PRESETS: dict[str, NetworkConfig] = {
     "default": NetworkConfig(),
     "paper": NetworkConfig(hidden_layers=10, hidden_features=512, omega_0=30.0),
     "small": NetworkConfig(hidden_layers=2, hidden_features=32),
+    "per_element": NetworkConfig(kind="per_element"),
 }
 
 

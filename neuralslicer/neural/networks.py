@@ -1,4 +1,5 @@
-"""SIREN networks for the quaternion field q(x) and the scale-ratio field s(x) (SPEC step 5)."""
+"""The quaternion field q(x) and the scale-ratio field s(x) (SPEC step 5): SIREN networks, or free
+per-element values (the ablation of the Q-S networks)."""
 from __future__ import annotations
 
 import math
@@ -48,25 +49,54 @@ class Siren(nn.Module):
         return self.head(self.body(x))
 
 
-class DeformationFields(nn.Module):
-    """The two networks q(x) (unit quaternion, w first) and s(x) (positive scale ratios).
+class ElementTable(nn.Module):
+    """Free values per cage tet, R^3 -> R^k only at the tets' centroids: one trainable row per element."""
 
-    Inputs are model-space points; they are normalised to [-1, 1]^3 by the cage's bounding box
-    (kept as buffers, so that they are part of the state dict). At initialisation q = (1,0,0,0)
-    and s = (1,1,1) exactly: the identity mapping, planar layers G = z.
+    def __init__(self, n_elements: int, initial: list[float]) -> None:
+        super().__init__()
+        rows = torch.tensor(initial, dtype=torch.float32).expand(n_elements, len(initial))
+        self.values = nn.Parameter(rows.clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x : (m, 3), the m element centroids in element order -> the table (m, k)."""
+        if x.shape[0] != self.values.shape[0]:
+            raise ValueError(
+                f"per-element q, s are defined at the {self.values.shape[0]} cage-tet centroids only; "
+                f"got {x.shape[0]} points")
+        return self.values
+
+
+class DeformationFields(nn.Module):
+    """The two fields q(x) (unit quaternion, w first) and s(x) (positive scale ratios).
+
+    With ``cfg.kind == 'siren'`` they are SIREN networks; inputs are model-space points, normalised
+    to [-1, 1]^3 by the cage's bounding box (kept as buffers, so that they are part of the state
+    dict). With ``cfg.kind == 'per_element'`` they are tables of ``n_elements`` free rows (raw
+    quaternion, pre-activation scale) and are evaluated at the cage-tet centroids only. Either way
+    q = (1,0,0,0) and s = (1,1,1) exactly at initialisation: the identity mapping, planar layers G = z.
     """
 
-    def __init__(self, cfg: NetworkConfig, bounds: np.ndarray) -> None:
+    def __init__(self, cfg: NetworkConfig, bounds: np.ndarray, n_elements: int | None = None) -> None:
         super().__init__()
         self.cfg = cfg
-        self.q_net = Siren(4, cfg)
-        self.s_net = Siren(3, cfg)
+        q_offset = [1.0, 0.0, 0.0, 0.0]
+        if cfg.kind == "per_element":
+            if n_elements is None:
+                raise ValueError("the per_element parameterisation needs the number of cage tets (n_elements)")
+            # the raw quaternion itself starts at (1,0,0,0), so the weights never all vanish (the DC3
+            # correction caps its step relative to the weight norm)
+            self.q_net: nn.Module = ElementTable(n_elements, q_offset)
+            self.s_net: nn.Module = ElementTable(n_elements, [0.0, 0.0, 0.0])
+            q_offset = [0.0, 0.0, 0.0, 0.0]
+        else:
+            self.q_net = Siren(4, cfg)
+            self.s_net = Siren(3, cfg)
         bounds = np.asarray(bounds, dtype=np.float64)
         centre = 0.5 * (bounds[0] + bounds[1])
         half = np.maximum(0.5 * (bounds[1] - bounds[0]), 1e-12)
         self.register_buffer("centre", torch.as_tensor(centre, dtype=torch.float32))
         self.register_buffer("half_extent", torch.as_tensor(half, dtype=torch.float32))
-        self.register_buffer("q_offset", torch.tensor([1.0, 0.0, 0.0, 0.0]))
+        self.register_buffer("q_offset", torch.tensor(q_offset))
         self.log_max_scale = math.log(cfg.max_scale)
 
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
@@ -74,7 +104,7 @@ class DeformationFields(nn.Module):
         return (x - self.centre.to(x.dtype)) / self.half_extent.to(x.dtype)
 
     def raw_quaternion(self, x: torch.Tensor) -> torch.Tensor:
-        """Unnormalised quaternion q(x) (n,4), (1,0,0,0) + network output."""
+        """Unnormalised quaternion q(x) (n,4): (1,0,0,0) + network output, or the per-element row."""
         return self.q_offset.to(x.dtype) + self.q_net(self.normalise(x))
 
     def scale(self, x: torch.Tensor) -> torch.Tensor:

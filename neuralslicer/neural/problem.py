@@ -114,7 +114,8 @@ class FieldProblem:
     def new_fields(self) -> DeformationFields:
         """Fresh identity-initialised networks (uses the torch RNG) on the problem's device/dtype."""
         bounds = np.stack([self.geometry.vertices.min(0), self.geometry.vertices.max(0)])
-        return DeformationFields(self.config.network_config(), bounds).to(self.device, self.dtype)
+        return DeformationFields(self.config.network_config(), bounds, len(self.geometry.tets)).to(
+            self.device, self.dtype)
 
     def height(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(G at cage vertices (n,), unit quaternions (m,4), scales (m,3)) for the current weights."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from neuralslicer.samples import SurfaceSamples
 from neuralslicer.tetmesh import boundary_faces
 
 
@@ -24,3 +25,16 @@ def boundary_samples(
     on_platform = (pts[:, 2] <= zmin + platform_tol) & (nrm[:, 2] < -0.5)
     return {"points": pts, "normals": nrm, "areas": areas, "knn": knn.astype(np.int64),
             "on_platform": on_platform}
+
+
+def sphere_samples(n: int = 300, radius: float = 4.0, centre: tuple[float, float, float] = (5.0, 5.0, 5.0),
+                   k: int = 10) -> SurfaceSamples:
+    """Fibonacci samples B of a sphere (points, outward normals, |A_p| from the k nearest, knn); the cap facing
+    straight down (n_z < -0.95) is on the platform. In a 10 mm box its lower half overhangs planar layers."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    th = np.pi * (1 + 5**0.5) * i
+    nrm = np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], axis=1)
+    pts = np.asarray(centre) + radius * nrm
+    dist, knn = cKDTree(pts).query(pts, k=k + 1)
+    return SurfaceSamples(pts, nrm, (dist[:, 1:] ** 2).mean(axis=1), knn[:, 1:], nrm[:, 2] < -0.95)
