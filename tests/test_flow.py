@@ -272,3 +272,17 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     # the blend keeps part of the optimised field's gain unless it had to go all the way to planar layers
     if metrics["field.blend_planar"] < 1.0:
         assert metrics["sf.overhang_area_fraction"] <= metrics["sf.overhang_area_fraction_planar"]
+
+
+@pytest.mark.parametrize("model", ["spec.yaml", "part_scan.pcd"])
+def test_point_clouds_slice_end_to_end(tmp_path, model):
+    """The shipped point clouds (with normals, through a spec; a noisy scan without normals, as a bare file) slice
+    from points to G-code: the optimised field takes the part's overhangs away and its print is complete."""
+    source = REPO / "neuralslicer" / "examples" / "points" / model
+    cfg = write_config(tmp_path / "cfg.yaml", neural={"optim": {"max_steps": 20, "checkpoint_every": 5}})
+    out = tmp_path / "run"
+    assert main(slice_cmd(source, out, cfg, "--objectives", "sf,po")) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["model_genus"] == 1  # the block's through hole survives the reconstruction
+    assert metrics["n_layers"] > 5 and metrics["n_waypoints"] > 1000 and (out / "print.gcode").stat().st_size > 0
+    assert metrics["sf.overhang_area_fraction"] <= metrics["sf.overhang_area_fraction_planar"]

@@ -118,6 +118,41 @@ def test_sigkill_at_a_step_then_rerun_gives_the_uninterrupted_result(case, tmp_p
     assert comparable(out) == case["reference"]
 
 
+def test_ctrl_c_says_one_line_exits_130_and_the_rerun_resumes(case, tmp_path):
+    out = tmp_path / "run"
+    args = [*case["args"], "--out", str(out)]
+    env = cli_env(tmp_path)
+    proc = cli(args, env)
+    seen: list[str] = []
+    for line in proc.stderr:
+        seen.append(line.rstrip())
+        if line.startswith("optimise: ") and "/20 (" in line:  # inside the optimisation
+            break
+    proc.send_signal(signal.SIGINT)  # what Ctrl-C sends
+    rest = proc.stderr.read().splitlines()
+    assert proc.wait(timeout=120) == 130, "\n".join((seen + rest)[-30:])
+    assert [ln for ln in rest if ln.startswith("neuralslicer:")] == [
+        "neuralslicer: interrupted; run the same command again to resume"]
+    assert not any("Traceback" in ln for ln in rest), "\n".join(rest[-30:])
+    rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+                           timeout=600)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert comparable(out) == case["reference"]
+
+
+def test_a_read_only_working_directory_builds_the_cage(tmp_path, monkeypatch):
+    """fTetWild writes a debug file into the working directory; where it cannot (here /proc, read-only even for
+    root), the cage is built all the same."""
+    from neuralslicer.cage import CageConfig, build_cage
+
+    sphere = trimesh.creation.icosphere(2, 10.0)
+    H = lambda x: np.linalg.norm(np.asarray(x), axis=1) - 10.0  # noqa: E731
+    monkeypatch.chdir("/proc")
+    cage = build_cage(H, np.array([[-10.0] * 3, [10.0] * 3]), 4188.8, CageConfig(n_elements=800),
+                      np.asarray(sphere.vertices) * 0.99)
+    assert len(cage.tets) > 200
+
+
 def test_concurrent_runs_share_one_store(case, tmp_path):
     other = tmp_path / "tpart.stl"
     mesh = l_part_mesh()
