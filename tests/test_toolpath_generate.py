@@ -151,8 +151,9 @@ def test_triangle_soup_with_flipped_faces_gives_the_same_paths():
     assert tp.attrs["n_paths"] == ref.attrs["n_paths"]
 
 
-def test_irregular_curved_layers_from_marching_cubes():
-    """Bowl layers G = z - 0.03 r^2 (irregular triangles), trimmed to a cylinder: analytic thickness."""
+def _bowl_layers(isovalues: tuple[float, ...]) -> list[trimesh.Trimesh]:
+    """Bowl layers G = z - 0.03 r^2 by marching cubes (irregular triangles), trimmed to a cylinder of radius 9,
+    with their analytic LPDs."""
     from skimage.measure import marching_cubes
 
     h = 0.5
@@ -161,7 +162,7 @@ def test_irregular_curved_layers_from_marching_cubes():
     X, Y, Z = np.meshgrid(xs, xs, zs, indexing="ij")
     G = Z - 0.03 * (X ** 2 + Y ** 2)
     layers = []
-    for iso in (0.6, 1.2, 1.8):
+    for iso in isovalues:
         v, f, _, _ = marching_cubes(G, iso, spacing=(h, h, h))
         v = v + [xs[0], xs[0], zs[0]]
         f = f[(np.linalg.norm(v[:, :2], axis=1) <= 9.0)[f].all(axis=1)]
@@ -169,6 +170,12 @@ def test_irregular_curved_layers_from_marching_cubes():
         m = trimesh.Trimesh(v, f, process=False)
         m.vertex_attributes["lpd"] = grad / np.linalg.norm(grad, axis=1, keepdims=True)
         layers.append(m)
+    return layers
+
+
+def test_irregular_curved_layers_from_marching_cubes():
+    """Bowl layers G = z - 0.03 r^2 (irregular triangles), trimmed to a cylinder: analytic thickness."""
+    layers = _bowl_layers((0.6, 1.2, 1.8))
     tp = toolpaths(layers, platform_z=0.0)
     assert _distance_to_layers(tp, layers).max() < 1e-3
     on = (tp.path >= 0) & (tp.layer > 0)
@@ -236,3 +243,78 @@ def test_band_limited_paths_match_fully_refined_ones(monkeypatch):
     assert np.allclose(shells[0][:n], shells[1][:n], atol=0.05)
     assert abs(len(band_tp) / len(full_tp) - 1.0) < 0.02
     assert abs(band_tp.deposited_volume() / full_tp.deposited_volume() - 1.0) < 0.01
+
+
+def test_thickness_is_exact_on_irregular_triangulations():
+    """Planar layers 0.5 mm apart, each a Delaunay triangulation of its own random points (slivers next to
+    large triangles): the ray to the layer below must find it under every waypoint."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(3)
+    layers = []
+    for i in range(4):
+        pts = np.vstack([rng.random((150, 2)) * 40 - 20, [[-20, -20], [20, -20], [20, 20], [-20, 20]]])
+        v = np.column_stack([pts, np.full(len(pts), 0.5 * (i + 1))])
+        m = trimesh.Trimesh(v, Delaunay(pts).simplices, process=False)
+        m.vertex_attributes["lpd"] = np.tile([0.0, 0.0, 1.0], (len(v), 1))
+        layers.append(m)
+    tp = toolpaths(layers, platform_z=0.0)
+    on = (tp.path >= 0) & (tp.layer > 0)
+    assert np.abs(tp.thickness[on] - 0.5).max() < 1e-6
+
+
+def _rim_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Brute-force straight-line distance from points (k, 3) to the segments a-b (m, 3)."""
+    ab = b - a
+    u = np.clip(np.einsum("kmj,mj->km", points[:, None] - a, ab) / np.maximum(np.einsum("mj,mj->m", ab, ab), 1e-300),
+                0, 1)
+    return np.linalg.norm(points[:, None] - (a + u[..., None] * ab), axis=2).min(axis=1)
+
+
+def test_shells_on_irregular_curved_layers_lie_at_their_offsets():
+    """Bowl layers from marching cubes (irregular triangles, jagged trimmed rim): each layer has one closed
+    loop per shell, every shell waypoint at (k + 1/2) w from the rim (no stray loops where a distance
+    estimate is noisy)."""
+    layers = _bowl_layers((0.63, 1.23, 1.83))
+    cfg = ToolpathConfig()
+    tp = toolpaths(layers, platform_z=0.0, config=cfg)
+    for li, m in enumerate(layers):
+        e = np.sort(np.concatenate([m.faces[:, [0, 1]], m.faces[:, [1, 2]], m.faces[:, [2, 0]]]), axis=1)
+        edges, count = np.unique(e, axis=0, return_counts=True)
+        rim = edges[count == 1]
+        loops = []
+        for k in np.unique(tp.path[(tp.layer == li) & (tp.path >= 0)]):
+            q = tp.xyz[tp.path == k]
+            if np.allclose(q[0], q[-1]):
+                loops.append(_rim_distance(q, m.vertices[rim[:, 0]], m.vertices[rim[:, 1]]))
+        assert len(loops) == cfg.n_shells
+        for d in loops:
+            level = (np.round(np.median(d) / cfg.line_width - 0.5) + 0.5) * cfg.line_width
+            assert np.abs(d - level).max() < cfg.line_width / 6
+
+
+def test_boundary_distance_follows_the_patch_across_a_fold():
+    """A strip bent into a hairpin (bend radius 0.4 mm): the short arm's free edge is 0.8 mm above the long
+    arm, but 2-3 mm away along the strip, so the long arm there is beyond the distance band; the short arm
+    itself has its exact distance."""
+    from neuralslicer.toolpath.geometry import Patch, boundary_distance, refine_patch
+
+    rad, short = 0.4, 1.0
+    arc = np.pi * rad
+    u = np.linspace(0.0, short + arc + 10.0, 200)                   # arc length along the profile
+    x = np.where(u < short, short - u, np.where(u < short + arc, -rad * np.sin((u - short) / rad), u - short - arc))
+    z = np.where(u < short, 2 * rad, np.where(u < short + arc, rad + rad * np.cos((u - short) / rad), 0.0))
+    y = np.linspace(0.0, 6.0, 25)
+    U, Yg = np.meshgrid(np.arange(len(u)), y, indexing="ij")
+    v = np.column_stack([x[U.ravel()], Yg.ravel(), z[U.ravel()]])
+    idx = np.arange(len(v)).reshape(len(u), len(y))
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    patch = refine_patch(Patch(v, faces, np.tile([0.0, 0.0, 1.0], (len(v), 1))), 0.5, band=1.75)
+    dist = boundary_distance(patch, upper=1.75)
+    p = patch.vertices
+    middle = np.abs(p[:, 1] - 3.0) < 1.0                            # far from the strip's sides
+    long_arm = middle & (p[:, 2] < 1e-9) & (p[:, 0] > 0.3) & (p[:, 0] < 1.5)
+    assert long_arm.sum() > 5 and np.allclose(dist[long_arm], 1.75)   # chord 0.8-1.0 mm, along the strip > 2 mm
+    short_arm = middle & (np.abs(p[:, 2] - 2 * rad) < 1e-9) & (p[:, 0] > 0.1)
+    assert short_arm.sum() > 5 and np.allclose(dist[short_arm], short - p[short_arm, 0], atol=1e-6)

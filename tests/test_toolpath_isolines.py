@@ -59,3 +59,72 @@ def test_resampling_keeps_ends_and_bounds_the_spacing():
 def test_chaining_nothing(n_points):
     poly = chain_segments(np.zeros((0, 2), np.int64), n_points)
     assert len(poly) == 0
+
+
+def _annulus(r_in: float, r_out: float, n_rings: int, n_sectors: int):
+    """Planar annulus (polar grid): vertices (n, 3), faces (m, 3), both rims regular n_sectors-gons."""
+    r = np.linspace(r_in, r_out, n_rings + 1)
+    t = np.linspace(0, 2 * np.pi, n_sectors, endpoint=False)
+    rr, tt = np.meshgrid(r, t, indexing="ij")
+    v = np.column_stack([(rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel(), np.zeros(rr.size)])
+    idx = lambda i, j: i * n_sectors + (j % n_sectors)  # noqa: E731
+    j = np.arange(n_sectors)
+    f = [np.stack(q, 1) for i in range(n_rings)
+         for q in ((idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)), (idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)))]
+    return v, np.concatenate(f)
+
+
+def _polygon_distance(points: np.ndarray, r: float, n: int) -> np.ndarray:
+    """Distance (brute force) from points (k, 3) in z = 0 to the regular n-gon of circumradius r."""
+    t = np.linspace(0, 2 * np.pi, n + 1)
+    a = np.column_stack([r * np.cos(t[:-1]), r * np.sin(t[:-1])])
+    b = np.column_stack([r * np.cos(t[1:]), r * np.sin(t[1:])])
+    p = points[:, None, :2]
+    u = np.clip(np.einsum("kmj,mj->km", p - a, b - a) / np.einsum("mj,mj->m", b - a, b - a), 0, 1)
+    return np.linalg.norm(p - (a + u[..., None] * (b - a)), axis=2).min(axis=1)
+
+
+def test_boundary_distance_isolines_on_a_refined_annulus_match_the_exact_offsets():
+    """Shell isolines of the straight-line boundary distance, on a coarse annulus refined near its rims only,
+    lie at the level from the nearer rim (an independent brute-force distance to both polygons)."""
+    from neuralslicer.toolpath.geometry import Patch, boundary_distance, refine_patch
+
+    v, f = _annulus(4.0, 10.0, 2, 48)                                       # edges 1-3 mm
+    patch = refine_patch(Patch(v, f, np.tile([0.0, 0.0, 1.0], (len(v), 1))), 0.25, band=1.5)
+    d = boundary_distance(patch, upper=1.5)
+    exact = np.minimum(_polygon_distance(patch.vertices, 4.0, 48), _polygon_distance(patch.vertices, 10.0, 48))
+    assert np.allclose(d, np.minimum(exact, 1.5), atol=1e-9)               # exact at every vertex, clipped
+    levels = np.array([0.25, 0.75, 1.25])
+    iso = isoline_points(patch.faces, d, levels)
+    pts = iso.interpolate(patch.vertices)
+    poly = chain_segments(iso.segments, len(pts))
+    assert len(poly) == 6 and poly.closed.all()                            # one loop per rim and level
+    at = np.minimum(_polygon_distance(pts, 4.0, 48), _polygon_distance(pts, 10.0, 48))
+    # linear interpolation is exact along the straight rims; near the polygon corners d bends
+    assert np.abs(at - levels[iso.level]).max() < 0.02
+    assert np.median(np.abs(at - levels[iso.level])) < 1e-9
+
+
+def test_segment_distances_and_ray_hits_match_brute_force():
+    from neuralslicer.toolpath.geometry import ElementSet, TriangleSet
+
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(40, 3)), rng.normal(size=(40, 3))
+    v = np.concatenate([a, b])
+    segs = np.column_stack([np.arange(40), 40 + np.arange(40)])
+    p = rng.normal(size=(500, 3)) * 2
+    ab = b - a
+    u = np.clip(np.einsum("kmj,mj->km", p[:, None] - a, ab) / np.einsum("mj,mj->m", ab, ab), 0, 1)
+    brute = np.linalg.norm(p[:, None] - (a + u[..., None] * ab), axis=2).min(axis=1)
+    assert np.allclose(ElementSet(v, segs).distance(p), brute, atol=1e-12)
+    # rays down onto a planar disc at z = 1: hit at z - 1 when inside it, none beyond reach or outside
+    m = disc_layer(1.0, radius=5.0, n_rings=6, n_sectors=40)
+    tris = TriangleSet(np.asarray(m.vertices), np.asarray(m.faces))
+    o = np.column_stack([rng.uniform(-6, 6, (300, 2)), rng.uniform(1.1, 4.0, 300)])
+    down = np.tile([0.0, 0.0, -1.0], (300, 1))
+    t = tris.ray_distance(o, down, reach=2.0)
+    inside = np.linalg.norm(o[:, :2], axis=1) < 5.0 * np.cos(np.pi / 40) - 1e-6
+    expect = np.where(inside & (o[:, 2] - 1.0 <= 2.0), o[:, 2] - 1.0, np.inf)
+    outside_rim = np.linalg.norm(o[:, :2], axis=1) > 5.0
+    sure = inside | outside_rim                                             # skip the rim's polygon sliver
+    assert np.allclose(t[sure], expect[sure], atol=1e-6)

@@ -67,10 +67,11 @@ def distance_band(cfg: ToolpathConfig) -> float:
     return (cfg.n_shells + 1.5) * cfg.line_width
 
 
-def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathConfig) -> list[_Path]:
-    """Shells and infill of one patch (unordered)."""
+def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathConfig,
+                 surface: TriangleSet | None = None) -> list[_Path]:
+    """Shells and infill of one (refined) patch, unordered; ``surface``: its triangles before refinement."""
     w = cfg.line_width
-    d = boundary_distance(patch, upper=distance_band(cfg))
+    d = boundary_distance(patch, upper=distance_band(cfg), surface=surface)
     finite = np.isfinite(d)
     d_max = float(d[finite].max()) if finite.any() else 0.0
     paths: list[_Path] = []
@@ -185,58 +186,56 @@ def _order_paths(paths: list[_Path], start: FloatArray, alternate_loops: bool = 
     return ordered
 
 
-def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet | None], cfg: ToolpathConfig
-                 ) -> list[_Path]:
+def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet], cfg: ToolpathConfig) -> list[_Path]:
     """Join consecutive infill lines of adjacent levels by an extruding connector on the patch.
 
     Connector points are spaced by at most ``cfg.spacing`` and projected onto the patch (closest
-    point), so they lie on the layer too.
+    point on the layer's own triangles, which the refined patch subdivides), so they lie on the
+    layer too.
     """
-    if not ordered:
+    if len(ordered) < 2:
         return ordered
     gap_max = cfg.join_factor * cfg.line_width / cfg.infill_density
-    groups: list[list[_Path]] = [[ordered[0]]]
-    for p in ordered[1:]:
-        q = groups[-1][-1]
-        gap = float(np.linalg.norm(p.xyz[0] - q.xyz[-1]))
-        if (p.kind == INFILL and q.kind == INFILL and p.patch == q.patch and abs(p.level - q.level) == 1
-                and 0 < gap <= gap_max):
-            groups[-1].append(p)
-        else:
-            groups.append([p])
-    # connectors of all groups, projected per patch in one call
-    conn: dict[tuple[int, int], tuple[FloatArray, FloatArray]] = {}
-    pts_by_patch: dict[int, list] = {}
-    for gi, g in enumerate(groups):
-        for j in range(1, len(g)):
-            q, p = g[j - 1], g[j]
-            gap = float(np.linalg.norm(p.xyz[0] - q.xyz[-1]))
-            n = max(int(np.ceil(gap / cfg.spacing)), 1)
-            t = (np.arange(1, n) / n)[:, None]
-            mid = (1 - t) * q.xyz[-1] + t * p.xyz[0]
-            conn[(gi, j)] = (mid, _normalise((1 - t) * q.axis[-1] + t * p.axis[0]))
-            pts_by_patch.setdefault(p.patch, []).append((gi, j))
-    for patch, keys in pts_by_patch.items():
-        tris = patches[patch]
-        if tris is None:
+    first = np.array([p.xyz[0] for p in ordered])
+    last = np.array([p.xyz[-1] for p in ordered])
+    kind = np.array([p.kind for p in ordered])
+    patch = np.array([p.patch for p in ordered])
+    level = np.array([p.level for p in ordered])
+    gap = np.linalg.norm(first[1:] - last[:-1], axis=1)
+    join = ((kind[1:] == INFILL) & (kind[:-1] == INFILL) & (patch[1:] == patch[:-1])
+            & (np.abs(np.diff(level)) == 1) & (gap > 0) & (gap <= gap_max))
+    if not join.any():
+        return ordered
+    # connectors of all joins (j: path j joined to path j + 1) at once, projected per patch
+    j = np.flatnonzero(join)
+    n = np.maximum(np.ceil(gap[j] / cfg.spacing - 1e-9).astype(np.int64), 1)
+    rep = np.repeat(np.arange(len(j)), n - 1)
+    t = ((np.arange(len(rep)) - np.repeat(np.cumsum(n - 1) - (n - 1), n - 1) + 1) / n[rep])[:, None]
+    a0 = np.array([ordered[i].axis[-1] for i in j])
+    a1 = np.array([ordered[i + 1].axis[0] for i in j])
+    pts = (1 - t) * last[j][rep] + t * first[j + 1][rep]
+    axs = _normalise((1 - t) * a0[rep] + t * a1[rep])
+    for pid in np.unique(patch[j]):
+        sel = patch[j][rep] == pid
+        if sel.any():
+            pts[sel] = patches[pid].closest(pts[sel])[0]
+    cut = np.cumsum(n - 1)[:-1]
+    conn = dict(zip(j.tolist(), zip(np.split(pts, cut), np.split(axs, cut))))
+    out: list[_Path] = []
+    xyz: list[FloatArray] = []
+    ax: list[FloatArray] = []
+    for i, p in enumerate(ordered):
+        xyz.append(p.xyz)
+        ax.append(p.axis)
+        if i in conn:
+            xyz.append(conn[i][0])
+            ax.append(conn[i][1])
             continue
-        allpts = np.concatenate([conn[k][0] for k in keys]) if keys else np.zeros((0, 3))
-        if len(allpts) == 0:
-            continue
-        proj, _ = tris.closest(allpts)
-        sizes = np.cumsum([len(conn[k][0]) for k in keys])[:-1]
-        for k, pp in zip(keys, np.split(proj, sizes)):
-            conn[k] = (pp, conn[k][1])
-    out = []
-    for gi, g in enumerate(groups):
-        if len(g) == 1:
-            out.append(g[0])
-            continue
-        xyz, ax = [g[0].xyz], [g[0].axis]
-        for j in range(1, len(g)):
-            xyz += [conn[(gi, j)][0], g[j].xyz]
-            ax += [conn[(gi, j)][1], g[j].axis]
-        out.append(_Path(np.concatenate(xyz), np.concatenate(ax), g[0].patch, INFILL, g[-1].level, False))
+        if len(xyz) == 1:
+            out.append(p)
+        else:                                    # a joined group: one patch, the last line's level
+            out.append(_Path(np.concatenate(xyz), np.concatenate(ax), p.patch, INFILL, p.level, False))
+        xyz, ax = [], []
     return out
 
 
@@ -257,10 +256,21 @@ class _Columns:
                                   thick, np.full(len(xyz), width), extrude)):
             self.cols[k].append(v)
 
+    def end_layer(self, start: int) -> None:
+        """Merge the pieces appended since piece ``start`` (one layer's) into one array per column."""
+        for v in self.cols.values():
+            if len(v) - start > 1:
+                v[start:] = [np.concatenate(v[start:])]
+
     def toolpaths(self) -> Toolpaths:
-        """The columns concatenated (unit tool axes)."""
-        c = {k: np.concatenate(v) for k, v in self.cols.items()}
-        return Toolpaths(layer=c["layer"], path=c["path"], xyz=c["xyz"], axis=_normalise(c["axis"]),
+        """The columns concatenated (unit tool axes); each column's pieces are freed once merged."""
+        c = {}
+        for k in COLUMNS:
+            c[k] = np.concatenate(self.cols[k])
+            self.cols[k] = []
+        norm = np.linalg.norm(c["axis"], axis=1)
+        c["axis"] /= np.where(norm > 0, norm, 1.0)[:, None]
+        return Toolpaths(layer=c["layer"], path=c["path"], xyz=c["xyz"], axis=c["axis"],
                          thickness=c["thickness"], width=c["width"], extrude=c["extrude"])
 
 
@@ -273,20 +283,20 @@ def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: Fl
     if lpd.shape != verts.shape:
         raise InputError(f"layers[{li}]", "vertex_attributes['lpd'] must be (n_vertices, 3)")
     all_paths: list[_Path] = []
-    tri_sets: list[TriangleSet | None] = []
+    filled: list[TriangleSet] = []
     skipped = 0
     for patch in split_patches(verts, faces, lpd):
         if patch.area < cfg.min_patch_area:
             skipped += 1
             continue
-        patch = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
-        tri_sets.append(TriangleSet(patch.vertices, patch.faces))
-        all_paths += _patch_paths(patch, len(tri_sets) - 1, li, cfg)
+        filled.append(TriangleSet(patch.vertices, patch.faces))
+        fine = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
+        all_paths += _patch_paths(fine, len(filled) - 1, li, cfg, filled[-1])
     if not all_paths:
         return [], 0, skipped, 0
     start = start if start is not None else all_paths[0].xyz[0]
-    ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops), tri_sets, cfg)
-    return ordered, len(tri_sets), skipped, sum(p.closed for p in all_paths)
+    ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops), filled, cfg)
+    return ordered, len(filled), skipped, sum(p.closed for p in all_paths)
 
 
 def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray, cur: FloatArray | None,
@@ -334,7 +344,9 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
         if ordered:
             xyz, ax = np.concatenate([p.xyz for p in ordered]), np.concatenate([p.axis for p in ordered])
             thick = layer_thickness(xyz, ax, below, platform_z, cfg.thickness_cap_factor * t_max, t_max)
+            start = len(cols.cols["xyz"])
             cur, path_id = _emit_layer(cols, li, ordered, thick, cur, path_id, cfg)
+            cols.end_layer(start)
         below = TriangleSet(np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64))
     if not cols.cols["xyz"]:
         raise InputError("layers", "the layers are too small for any toolpath "

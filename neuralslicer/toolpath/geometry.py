@@ -7,18 +7,19 @@ import numpy as np
 import trimesh
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components, dijkstra
-from scipy.spatial import cKDTree
 
 from neuralslicer.types import FloatArray, IndexArray
 
 
 @dataclass
 class Patch:
-    """One connected component of a layer: vertices (n,3), faces (m,3), unit LPD per vertex."""
+    """One connected component of a layer: vertices (n,3), faces (m,3), unit LPD per vertex (n,3)."""
 
     vertices: FloatArray
     faces: IndexArray
     lpd: FloatArray
+    #: straight-line distance of each vertex to the boundary (n,), where already measured
+    distance: FloatArray | None = None
 
     @property
     def area(self) -> float:
@@ -89,6 +90,11 @@ def split_patches(vertices: FloatArray, faces: IndexArray, lpd: FloatArray) -> l
     return patches
 
 
+def _length2(vectors: FloatArray) -> FloatArray:
+    """Squared lengths of vectors (n, 3) -> (n,)."""
+    return np.einsum("ij,ij->i", vectors, vectors)
+
+
 def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.ndarray, max_edge: float
                  ) -> tuple[FloatArray, IndexArray, FloatArray]:
     """Split at their midpoints the edges longer than ``max_edge`` of the faces in ``split_face``.
@@ -97,11 +103,11 @@ def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.n
     its split-edge count (one edge: 2 triangles, two: 3, three: 4), keeping its orientation.
     """
     m = len(f)
-    e = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2)    # (m, 3, 2)
-    ukey, eid = np.unique(e[..., 0] * len(v) + e[..., 1], return_inverse=True)
+    f_next = f[:, [1, 2, 0]]                                      # edge k = (k, k+1)
+    ukey, eid = np.unique(np.minimum(f, f_next) * len(v) + np.maximum(f, f_next), return_inverse=True)
     eid = eid.reshape(m, 3)
     ua, ub = ukey // len(v), ukey % len(v)
-    long_edge = np.linalg.norm(v[ua] - v[ub], axis=1) > max_edge
+    long_edge = _length2(v[ua] - v[ub]) > max_edge * max_edge
     split = np.zeros(len(ukey), bool)
     split[eid[split_face].ravel()] = True
     split &= long_edge
@@ -136,27 +142,49 @@ def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.n
 
 
 def refine_patch(patch: Patch, max_edge: float, band: float = np.inf, max_rounds: int = 12) -> Patch:
-    """Split edges longer than ``max_edge`` in the faces within ``band`` of the patch boundary.
+    """Split edges longer than ``max_edge`` in the faces that reach within ``band`` of the patch boundary.
 
     Distances beyond the band are never needed to full resolution (zig-zag infill lines are
     isolines of a linear function, exact on the layer's own triangles), so the work grows with the
     boundary length times the band, not with the patch area. ``band = inf`` refines everything.
+    A face reaches into the band when its smallest vertex distance is below ``band`` plus
+    ``longest edge / sqrt(3)`` (no point of a triangle is further than that from all its vertices).
+    With a finite band the result carries the straight-line boundary distance of its vertices
+    (``Patch.distance``): the input's vertices are measured once, each round only its midpoints.
     """
     v, f, lpd = patch.vertices, patch.faces, patch.lpd
-    bverts, bedges = boundary_vertices(f)
+    d: FloatArray | None = None
+    if np.isfinite(band):
+        _, bedges = boundary_vertices(f)
+        if len(bedges) == 0:
+            return patch
+        nearest = ElementSet(v, bedges)
+        d = patch.distance if patch.distance is not None else nearest.distance(v)
+    # a face without a long edge never changes again (only long edges are split), so each round
+    # handles the faces that still have one
+    done: list[IndexArray] = []
     for _ in range(max_rounds):
-        tri = v[f]
-        longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
-        todo = longest > max_edge
-        if np.isfinite(band) and todo.any():
-            if len(bedges) == 0:
-                break
-            d = euclidean_boundary_distance(v, bedges, upper=band + float(longest.max()))
-            todo &= d[f].min(axis=1) < band + longest
+        p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        longest2 = np.maximum(np.maximum(_length2(p1 - p0), _length2(p2 - p1)), _length2(p0 - p2))
+        long_face = longest2 > max_edge * max_edge
+        done.append(f[~long_face])
+        f = f[long_face]
+        if not len(f):
+            break
+        todo = np.ones(len(f), bool)
+        if d is not None:
+            # a point of the face is within longest / sqrt(3) of one of its vertices, and d is 1-Lipschitz
+            todo = d[f].min(axis=1) < band + np.sqrt(longest2[long_face] / 3.0)
         if not todo.any():
             break
+        n_old = len(v)
         v, f, lpd = _split_edges(v, f, lpd, todo, max_edge)
-    return Patch(np.asarray(v, np.float64), np.asarray(f, np.int64), lpd)
+        if len(v) == n_old:
+            break
+        if d is not None:
+            d = np.concatenate([d, nearest.distance(v[n_old:])])
+    f = np.concatenate(done + [f])
+    return Patch(np.asarray(v, np.float64), np.asarray(f, np.int64), lpd, d)
 
 
 def boundary_vertices(faces: IndexArray) -> tuple[IndexArray, IndexArray]:
@@ -169,43 +197,46 @@ def boundary_vertices(faces: IndexArray) -> tuple[IndexArray, IndexArray]:
     return np.unique(bedges), bedges
 
 
-def _segment_distance(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Distance from points (n,3) to segments a-b (n,k,3) -> (n,k)."""
-    ab = b - a
-    t = np.einsum("nkj,nkj->nk", points[:, None, :] - a, ab) / np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-300)
-    q = a + np.clip(t, 0.0, 1.0)[..., None] * ab
-    return np.linalg.norm(points[:, None, :] - q, axis=2)
+class ElementSet:
+    """Exact closest points on a set of triangles (m, 3) or segments (m, 2) of ``vertices`` (n, 3).
+
+    A libigl AABB tree over the elements: a query costs O(log m), whatever the distance, so no
+    search radius or candidate count is needed.
+    """
+
+    def __init__(self, vertices: FloatArray, elements: IndexArray) -> None:
+        """Index the elements ``vertices[elements]``."""
+        import igl
+
+        self.vertices = np.ascontiguousarray(vertices, np.float64)
+        self.elements = np.ascontiguousarray(elements, np.int64)
+        self.tree = igl.AABB()
+        if len(self.elements):
+            self.tree.init(self.vertices, self.elements)
+
+    def closest(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Closest point on the elements to each point, and the distance: (n, 3), (n,)."""
+        points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        if len(points) == 0 or len(self.elements) == 0:
+            return points.copy(), np.full(len(points), np.inf)
+        sqr, _, cp = self.tree.squared_distance(self.vertices, self.elements, points)
+        return np.asarray(cp, np.float64).reshape(-1, 3), np.sqrt(np.maximum(sqr, 0.0))
+
+    def distance(self, points: FloatArray) -> FloatArray:
+        """Distance from each point (n, 3) to the nearest element (n,)."""
+        return self.closest(points)[1]
 
 
-def euclidean_boundary_distance(vertices: FloatArray, bedges: IndexArray, k: int = 6,
-                                upper: float = np.inf) -> FloatArray:
+def euclidean_boundary_distance(vertices: FloatArray, bedges: IndexArray, upper: float = np.inf) -> FloatArray:
     """Straight-line distance from each vertex to the nearest boundary edge (n,), at most ``upper``.
 
-    Exact geodesic distance to the boundary on planar patches; a chord (slight under-estimate,
-    relative error ~ d^2 / (24 R^2)) on patches of curvature radius R. Vertices further than
-    ``upper`` from every boundary sample get ``upper`` (the search stops there, which is what
-    keeps it cheap on large patches).
+    Exact (an AABB tree over the boundary segments). It is the geodesic distance to the boundary
+    on planar patches and a chord (slight under-estimate, relative error ~ d^2 / (24 R^2)) on
+    patches of curvature radius R.
     """
-    va, vb = vertices[bedges[:, 0]], vertices[bedges[:, 1]]
-    lengths = np.linalg.norm(vb - va, axis=1)
-    step = max(float(np.median(lengths)) * 0.5, 1e-9)
-    n_s = np.maximum(1, np.ceil(lengths / step)).astype(np.int64)
-    seg = np.repeat(np.arange(len(bedges)), n_s)
-    t = (np.arange(len(seg)) - np.repeat(np.cumsum(n_s) - n_s, n_s) + 0.5) / n_s[seg]
-    samples = va[seg] + t[:, None] * (vb - va)[seg]
-    kk = int(min(k, len(samples)))
-    # a sample lies within half a sample spacing of its edge: search that much further
-    reach = upper + step if np.isfinite(upper) else np.inf
-    _, idx = cKDTree(samples).query(vertices, k=kk, distance_upper_bound=reach)
-    idx = np.asarray(idx).reshape(len(vertices), kk)
-    found = idx < len(samples)
-    out = np.full(len(vertices), float(upper))
-    near = found[:, 0]
-    if near.any():
-        cand = seg[np.where(found[near], idx[near], idx[near][:, :1])]
-        dist = _segment_distance(vertices[near], va[cand], vb[cand]).min(axis=1)
-        out[near] = np.minimum(dist, upper)
-    return out
+    if len(bedges) == 0:
+        return np.full(len(vertices), float(upper))
+    return np.minimum(ElementSet(vertices, bedges).distance(vertices), upper)
 
 
 def is_planar(vertices: FloatArray, rel_tol: float = 1e-9) -> bool:
@@ -218,122 +249,118 @@ def is_planar(vertices: FloatArray, rel_tol: float = 1e-9) -> bool:
     return bool(sv[-1] / np.sqrt(len(vertices)) <= rel_tol * size)
 
 
-def boundary_distance(patch: Patch, upper: float = np.inf) -> FloatArray:
-    """Distance of every vertex from the patch boundary along the patch (n,).
+def _submesh(faces: IndexArray, keep_face: np.ndarray) -> tuple[IndexArray, IndexArray]:
+    """Faces ``keep_face`` renumbered over their own vertices: (faces (k, 3), vertex ids (n_k,))."""
+    f = faces[keep_face]
+    used, inv = np.unique(f, return_inverse=True)
+    return inv.reshape(-1, 3).astype(np.int64), used
 
-    The geodesic distance by the heat method (potpourri3d, intrinsic-Delaunay "robust" mode;
-    Dijkstra along edges if the solver rejects the mesh) over-estimates near the sources by up
-    to ~h, so wherever the straight-line distance to the boundary edges is at least half of it
-    (no fold of the patch in between) the straight-line distance is used: it is exact on planar
-    patches and a chord on curved ones. Planar patches skip the heat method (the straight-line
-    distance is the exact geodesic distance there). All +inf when the patch has no boundary;
-    distances are clipped at ``upper``.
+
+def _geodesic_distance(vertices: FloatArray, faces: IndexArray, sources: IndexArray) -> FloatArray:
+    """Geodesic distance from ``sources`` by the heat method (Dijkstra on edges if the solver fails) (n,).
+
+    Vertices not connected to a source get +inf.
+    """
+    n = len(vertices)
+    try:
+        import potpourri3d as pp3d
+
+        solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces, t_coef=1.0, use_robust=True)
+        d = np.asarray(solver.compute_distance_multisource(sources.tolist()), np.float64)
+        if not np.all(np.isfinite(d)):
+            raise ValueError("non-finite heat distance")
+        return np.maximum(d, 0.0)
+    except Exception:  # noqa: BLE001 - any solver failure: use the graph distance
+        e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
+        g = sparse.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+        return np.asarray(dijkstra(g, directed=False, indices=sources, min_only=True), np.float64)
+
+
+def boundary_distance(patch: Patch, upper: float = np.inf, surface: TriangleSet | None = None) -> FloatArray:
+    """Distance of every vertex from the patch boundary along the patch (n,), clipped at ``upper``.
+
+    The straight-line distance to the boundary edges, which is the geodesic distance on planar
+    patches and a chord on curved ones (relative error ~ d^2 / (24 R^2) at curvature radius R),
+    except where the chord from a vertex to its nearest boundary point leaves the patch (its
+    midpoint is further from the patch than a quarter of its length: the patch folds back near
+    its boundary). There the geodesic distance decides: by the heat method (potpourri3d,
+    intrinsic-Delaunay "robust" mode; Dijkstra along edges if the solver rejects the mesh) on the
+    faces within ``upper`` of the boundary (a geodesic of length at most ``upper`` never leaves
+    them), used where the straight-line distance is less than half of it. ``surface``: the
+    patch's triangles for the chord test (default: the patch itself; the unrefined patch is the
+    same surface and cheaper). All +inf when the patch has no boundary.
     """
     bverts, bedges = boundary_vertices(patch.faces)
     n = len(patch.vertices)
     if len(bverts) == 0:
         return np.full(n, np.inf)
-    euclid = euclidean_boundary_distance(patch.vertices, bedges, upper=upper)
+    nearest = ElementSet(patch.vertices, bedges)
+    if patch.distance is not None and len(patch.distance) == n:
+        euclid = np.minimum(patch.distance, upper)
+    else:
+        euclid = np.minimum(nearest.distance(patch.vertices), upper)
+    euclid[bverts] = 0.0
     if is_planar(patch.vertices):
-        euclid[bverts] = 0.0
         return euclid
-    try:
-        import potpourri3d as pp3d
-
-        solver = pp3d.MeshHeatMethodDistanceSolver(patch.vertices, patch.faces, t_coef=1.0,
-                                                   use_robust=True)
-        d = np.asarray(solver.compute_distance_multisource(bverts.tolist()), np.float64)
-        if not np.all(np.isfinite(d)):
-            raise ValueError("non-finite heat distance")
-    except Exception:  # noqa: BLE001 - any solver failure: use the graph distance
-        f = patch.faces
-        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        w = np.linalg.norm(patch.vertices[e[:, 0]] - patch.vertices[e[:, 1]], axis=1)
-        g = sparse.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-        d = np.asarray(dijkstra(g, directed=False, indices=bverts, min_only=True), np.float64)
-    d = np.maximum(d, 0.0)
-    d = np.minimum(np.where(euclid >= 0.5 * d, euclid, d), upper)
-    d[bverts] = 0.0
+    cand = np.flatnonzero((euclid < upper) & (euclid > 0.0))
+    foot, chord = nearest.closest(patch.vertices[cand])
+    surface = surface if surface is not None else TriangleSet(patch.vertices, patch.faces)
+    sag = surface.distance(0.5 * (patch.vertices[cand] + foot))
+    fold = cand[sag > 0.25 * chord]
+    if len(fold) == 0:
+        return euclid
+    near = euclid[patch.faces].min(axis=1) < upper
+    if not near.all():
+        # pieces of the band cut off from the boundary (the fold brought them near it) are further
+        # than ``upper`` along the patch
+        f = patch.faces[near]
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+        _, label = connected_components(sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
+                                        directed=False)
+        reached = np.zeros(label.max() + 1, bool)
+        reached[label[bverts]] = True
+        near[near] = reached[label[f[:, 0]]]
+    faces, ids = _submesh(patch.faces, near)
+    local = np.full(n, -1, np.int64)
+    local[ids] = np.arange(len(ids))
+    geo = np.full(n, np.inf)
+    geo[ids] = _geodesic_distance(patch.vertices[ids], faces, local[bverts])
+    d = euclid.copy()
+    d[fold] = np.minimum(np.where(euclid[fold] >= 0.5 * geo[fold], euclid[fold], geo[fold]), upper)
     return d
 
 
-_CHUNK = 20000
+class TriangleSet(ElementSet):
+    """Closest points and first ray hits on a triangle mesh (libigl AABB tree)."""
 
-
-class TriangleSet:
-    """Closest points and ray hits against a triangle soup, candidates from a centroid KD-tree."""
-
-    def __init__(self, vertices: FloatArray, faces: IndexArray, k: int = 12) -> None:
+    def __init__(self, vertices: FloatArray, faces: IndexArray) -> None:
         """Index the triangles ``vertices[faces]`` (m, 3, 3)."""
-        self.triangles = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]
-        self.k = int(min(k, len(self.triangles)))
-        self.tree = cKDTree(self.triangles.mean(axis=1))
+        super().__init__(vertices, faces)
 
-    def _candidates(self, points: FloatArray) -> IndexArray:
-        _, idx = self.tree.query(points, k=self.k)
-        return np.asarray(idx, np.int64).reshape(len(points), self.k)
-
-    def closest(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Closest point on the triangles to each point, and the distance: (n,3), (n,)."""
-        points = np.asarray(points, np.float64).reshape(-1, 3)
-        if len(points) == 0:
-            return points.copy(), np.zeros(0)
-        if len(points) > _CHUNK:
-            parts = [self.closest(points[i:i + _CHUNK]) for i in range(0, len(points), _CHUNK)]
-            return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
-        cand = self._candidates(points)
-        tri = self.triangles[cand.ravel()]
-        rep = np.repeat(points, self.k, axis=0)
-        cp = trimesh.triangles.closest_point(tri, rep).reshape(len(points), self.k, 3)
-        d = np.linalg.norm(cp - points[:, None, :], axis=2)
-        best = np.argmin(d, axis=1)
-        r = np.arange(len(points))
-        return cp[r, best], d[r, best]
-
-    def ray_distance(self, origins: FloatArray, directions: FloatArray, near: FloatArray
-                     ) -> FloatArray:
-        """Distance along unit ``directions`` to the first hit (inf if none), candidates near ``near``."""
-        origins = np.asarray(origins, np.float64).reshape(-1, 3)
-        if len(origins) == 0:
-            return np.zeros(0)
-        cand = self._candidates(near)
-        tri = self.triangles[cand]                          # (n, k, 3, 3)
-        o = origins[:, None, :]
-        dvec = np.asarray(directions, np.float64)[:, None, :]
-        e1 = tri[:, :, 1] - tri[:, :, 0]
-        e2 = tri[:, :, 2] - tri[:, :, 0]
-        p = np.cross(dvec, e2)
-        det = np.einsum("nkj,nkj->nk", e1, p)
-        ok = np.abs(det) > 1e-14
-        inv = 1.0 / np.where(ok, det, 1.0)
-        s = o - tri[:, :, 0]
-        u = np.einsum("nkj,nkj->nk", s, p) * inv
-        q = np.cross(s, e1)
-        v = np.einsum("nkj,nkj->nk", np.broadcast_to(dvec, q.shape), q) * inv
-        t = np.einsum("nkj,nkj->nk", e2, q) * inv
-        tol = 1e-9
-        hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 1e-9)
-        t = np.where(hit, t, np.inf)
-        return t.min(axis=1)
+    def ray_distance(self, origins: FloatArray, directions: FloatArray, reach: float = np.inf) -> FloatArray:
+        """Distance along unit ``directions`` (n, 3) to the first hit within ``reach`` (n,), inf if none."""
+        origins = np.ascontiguousarray(origins, np.float64).reshape(-1, 3)
+        if len(origins) == 0 or len(self.elements) == 0:
+            return np.full(len(origins), np.inf)
+        directions = np.ascontiguousarray(directions, np.float64).reshape(-1, 3)
+        hit, t, _ = self.tree.intersect_ray_first(self.vertices, self.elements, origins, directions, float(reach))
+        return np.where(np.asarray(hit) >= 0, np.asarray(t, np.float64), np.inf)
 
 
 def layer_thickness(points: FloatArray, axis: FloatArray, below: TriangleSet | None,
                     platform_z: float, max_thickness: float, first_layer_max: float) -> FloatArray:
     """Local layer thickness at waypoints: distance along ``-axis`` to the layer below.
 
-    The ray along ``-axis`` is cast at the layer below (candidate triangles from a KD-tree around
-    the closest point) and at the platform plane; the nearer hit wins. Where the ray misses the
-    layer below (near trimmed boundaries), the closest-point distance to it is used instead of
-    the ray hit (still bounded by the platform distance). Everything is capped at ``max_thickness``;
-    on the first layer (``below`` None) the platform distance is capped at ``first_layer_max``.
+    The ray along ``-axis`` is cast at the layer below (first hit within twice ``max_thickness``:
+    a hit further along the ray is not the layer below this point) and at the platform plane; the
+    nearer hit wins. Where the ray misses the layer below (near trimmed boundaries), the
+    closest-point distance to it is used instead of the ray hit (still bounded by the platform
+    distance). Everything is capped at ``max_thickness``; on the first layer (``below`` None) the
+    platform distance is capped at ``first_layer_max``.
     """
     points = np.asarray(points, np.float64).reshape(-1, 3)
     axis = np.asarray(axis, np.float64).reshape(-1, 3)
-    if below is not None and len(points) > _CHUNK:
-        return np.concatenate([
-            layer_thickness(points[i:i + _CHUNK], axis[i:i + _CHUNK], below, platform_z,
-                            max_thickness, first_layer_max)
-            for i in range(0, len(points), _CHUNK)])
     down = -axis
     az = down[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -342,8 +369,9 @@ def layer_thickness(points: FloatArray, axis: FloatArray, below: TriangleSet | N
     if below is None:
         t = np.where(np.isfinite(t_plat), t_plat, points[:, 2] - platform_z)
         return np.clip(t, 0.0, first_layer_max)
-    _, d_close = below.closest(points)
-    near = points + down * d_close[:, None]
-    t_ray = below.ray_distance(points, down, near)
-    t = np.where(np.isfinite(t_ray), np.minimum(t_ray, t_plat), np.minimum(d_close, t_plat))
+    t_ray = below.ray_distance(points, down, reach=2.0 * max_thickness)
+    t = np.minimum(t_ray, t_plat)
+    miss = ~np.isfinite(t_ray)
+    if miss.any():
+        t[miss] = np.minimum(below.distance(points[miss]), t_plat[miss])
     return np.clip(t, 0.0, max_thickness)

@@ -62,19 +62,25 @@ def isoline_points(faces: IndexArray, values: FloatArray, levels: FloatArray) ->
     nxt = np.roll(above, -1, axis=1)                         # vertex k+1 of edge k
     e_in = np.argmax(above & ~nxt, axis=1)                   # above -> below edge
     e_out = np.argmax(~above & nxt, axis=1)                  # below -> above edge
-    # unique edges of the mesh
-    fe = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2)  # (m, 3, 2): edge k = (v_k, v_k+1)
-    fe_sorted = np.sort(fe, axis=2).reshape(-1, 2)
-    n_vert = int(faces.max()) + 1
-    ukey, edge_id = np.unique(fe_sorted[:, 0] * n_vert + fe_sorted[:, 1], return_inverse=True)
-    uniq = np.stack([ukey // n_vert, ukey % n_vert], axis=1)
-    edge_id = edge_id.reshape(-1, 3)
+    # crossing points are shared per (edge, level): key them by the edge's vertex pair and the level,
+    # for the crossed faces only (no edge table of the whole mesh)
+    fr = faces[face_rep]
+    r = np.arange(total)
+    n_vert = np.int64(faces.max()) + 1
     n_levels = len(levels)
-    key_in = edge_id[face_rep, e_in] * n_levels + level_idx
-    key_out = edge_id[face_rep, e_out] * n_levels + level_idx
-    keys, inv = np.unique(np.concatenate([key_in, key_out]), return_inverse=True)
-    p_edge = uniq[keys // n_levels]
-    p_level = keys % n_levels
+    edge_key = []
+    for e in (e_in, e_out):
+        a, b = fr[r, e], fr[r, (e + 1) % 3]
+        edge_key.append(np.minimum(a, b) * n_vert + np.maximum(a, b))
+    edge_key, level2 = np.concatenate(edge_key), np.concatenate([level_idx, level_idx])
+    if float(n_vert) ** 2 * n_levels < 2.0 ** 62:
+        keys, inv = np.unique(edge_key * n_levels + level2, return_inverse=True)
+        edge_key, p_level = keys // n_levels, keys % n_levels
+    else:                                                     # the combined key would overflow int64
+        keys, inv = np.unique(np.stack([edge_key, level2], axis=1), axis=0, return_inverse=True)
+        edge_key, p_level = keys[:, 0], keys[:, 1]
+    inv = inv.reshape(-1)
+    p_edge = np.stack([edge_key // n_vert, edge_key % n_vert], axis=1)
     fa, fb = values[p_edge[:, 0]], values[p_edge[:, 1]]
     denom = fb - fa
     t = np.where(np.abs(denom) > 0, (levels[p_level] - fa) / np.where(denom == 0, 1, denom), 0.0)
