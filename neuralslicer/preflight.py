@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from pathlib import Path
 
 from neuralslicer.config import SliceConfig
@@ -52,6 +53,10 @@ def _check_writable(path: Path, option: str) -> None:
         raise InputError(option, f"{probe} is a file, so {path} cannot be created")
     if not os.access(probe, os.W_OK | os.X_OK):
         raise InputError(option, f"{probe} is not writable")
+    try:  # permissions say yes to root everywhere; a read-only file system (or /proc) says no only when tried
+        os.rmdir(tempfile.mkdtemp(prefix=".neuralslicer-probe-", dir=probe))
+    except OSError as exc:
+        raise InputError(option, f"{probe} is not writable ({exc.strerror.lower() if exc.strerror else exc})") from None
 
 
 def check_scale(solid: Solid, spec: ModelSpec) -> float:

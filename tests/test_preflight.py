@@ -67,6 +67,12 @@ def test_output_folder_in_a_read_only_folder(tmp_path, part, capsys):
         locked.chmod(0o755)
 
 
+def test_output_folder_on_a_read_only_file_system(part, capsys):
+    """/proc is read-only for root too: the same refusal where the permission test above cannot run."""
+    refuse(capsys, ["slice", str(part), "--out", "/proc/neuralslicer-out"], "--out")
+    assert not os.path.exists("/proc/neuralslicer-out")
+
+
 def test_store_that_is_a_file(tmp_path, part, capsys):
     store = tmp_path / "store.zarr"
     store.write_text("x")
