@@ -368,3 +368,28 @@ def test_the_written_program_starts_and_ends_safely(tmp_path, curved, profile_na
     assert e[last_print + 1] < e[last_print]                       # retract after the last printing move
     assert np.all(z[last_print + 2:] >= z_safe - 1e-3)             # then only at the safe height
     assert b[-1] == pytest.approx(0.0) and c[-1] % 360.0 == pytest.approx(0.0, abs=1e-4)
+
+
+def test_bulk_number_formatting_matches_printf():
+    from neuralslicer.gcode.writers import _Words, fixed_point, render_lines
+    rng = np.random.default_rng(11)
+    n = 3000
+    vals = np.concatenate([rng.normal(0, 300, n // 3), rng.uniform(-1e-3, 1e-3, n // 3),
+                           np.round(rng.uniform(-50, 50, n - 2 * (n // 3)), 4) + 5e-5])   # ties at the last digit
+    vals[:4] = [0.0, -0.0, -0.00004, 123456.789]
+    dec = rng.integers(1, 9, n)
+    present = rng.uniform(size=n) < 0.8
+    prefix = np.where(rng.uniform(size=n) < 0.5, "G0", "G1")
+    got = render_lines(prefix, [_Words("X", fixed_point(vals, 4), 4), _Words("F", fixed_point(vals, dec), dec, present)])
+
+    def printf(v, d):
+        r = np.round(v, d)
+        return f"{0.0 if r == 0 else r:.{d}f}"
+
+    expected = "".join(f"{p} X{printf(v, 4)}" + (f" F{printf(v, d)}" if on else "") + "\n"
+                       for p, v, d, on in zip(prefix, vals, dec, present))
+    assert got.decode() == expected
+    modal = _Words.modal("Y", fixed_point(np.array([1.0, 1.00001, 1.2, 1.2]), 4), 4)
+    assert modal.present.tolist() == [True, False, True, False]
+    with pytest.raises(ValueError):
+        fixed_point(np.array([1.0, np.nan]), 3)

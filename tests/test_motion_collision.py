@@ -164,3 +164,35 @@ def test_cell_classified_holder_test_is_exact_on_a_dense_cloud():
     r, z = np.hypot(d[:, 0], d[:, 1]), d[:, 2]
     outside_side = (~inside) & (z > 8) & (z < 38)
     assert np.allclose(sd[outside_side], r[outside_side] - 15.0)
+
+
+def test_head_lowest_z_is_the_lowest_point_of_the_head():
+    from neuralslicer.motion.collision import head_lowest_z
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(40, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    tips = rng.uniform(-5, 5, size=(40, 3))
+    low = head_lowest_z(tips, axes, NOZZLE, 0.4)
+    # the rims of the cone above min_height and of the holder, densely sampled, in the frame of each axis
+    ang = np.linspace(0, 2 * np.pi, 3601)
+    ta = np.tan(np.radians(30.0))
+    rims = [(0.4, 0.4 * ta), (8.0, 8.0 * ta), (8.0, 15.0), (38.0, 15.0)]
+    for t, a, lo in zip(tips, axes, low):
+        u = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        u /= np.linalg.norm(u)
+        v = np.cross(a, u)
+        z = min((t[2] + h * a[2] + r * (np.cos(ang) * u[2] + np.sin(ang) * v[2])).min() for h, r in rims)
+        assert lo <= z + 1e-12 and z - lo < 1e-4
+
+
+def test_poses_above_the_material_are_skipped_exactly():
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-20, 20, size=(400, 3)) * [1, 1, 0.25]                 # a slab, top near z = 5
+    tips = np.c_[rng.uniform(-15, 15, size=(300, 2)), rng.uniform(-2, 12, 300)]
+    axes = rng.normal(size=(300, 3)) * [0.4, 0.4, 1] + [0, 0, 1.5]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
+    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
+    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
+        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]

@@ -117,3 +117,43 @@ def test_alternating_loops_unwind_the_c_axis():
     n_loops = 20                         # well below the ~34 loops around the C axis in total
     assert spans[False] > 0.9 * 360 * n_loops
     assert spans[True] < 2 * 360
+
+
+def test_kinematics_in_blocks_equal_one_block(monkeypatch):
+    import neuralslicer.motion.kinematics as K
+    from neuralslicer.motion.kinematics import tool_axis
+    rng = np.random.default_rng(4)
+    kin = Kinematics(pivot=(12.0, -3.0, 40.0), c_offset=(0.5, -1.0, 7.0), b_min_deg=-180, b_max_deg=180)
+    p, off = rng.uniform(-30, 30, size=(1000, 3)), np.array([1.0, 2.0, -3.0])
+    b, c = rng.uniform(-90, 90, 1000), rng.uniform(-720, 720, 1000)
+    whole = machine_position(p, b, c, kin, off), forward_kinematics(p, b, c, kin, off), tool_axis(b, c)
+    monkeypatch.setattr(K, "ROWS_PER_BLOCK", 7)
+    out = np.zeros((1000, 5))
+    machine_position(p, b, c, kin, off, out=out[:, :3])
+    assert np.array_equal(out[:, :3], whole[0])
+    fk = forward_kinematics(p, b, c, kin, off)
+    assert np.array_equal(fk[0], whole[1][0]) and np.array_equal(fk[1], whole[1][1])
+    # the tool axis alone is forward kinematics' axis, and that is R_z(-C) R_y(-B) +Z
+    assert np.array_equal(tool_axis(b, c), whole[2]) and np.array_equal(whole[2], whole[1][1])
+    br, cr = np.radians(b), np.radians(c)
+    assert np.allclose(whole[2], np.c_[-np.cos(cr) * np.sin(br), np.sin(cr) * np.sin(br), np.cos(br)], atol=1e-15)
+
+
+def test_split_rotary_moves_end_exactly_on_their_waypoints():
+    from neuralslicer.motion.planning import _split_rotary
+    rng = np.random.default_rng(2)
+    m = 50
+    mv = {"xyz": rng.uniform(-10, 10, (m, 3)), "b": np.cumsum(rng.uniform(-3, 3, m)),
+          "c": np.cumsum(rng.uniform(-9, 9, m)), "de": rng.uniform(0, 1, m), "dt": rng.uniform(0, 1, m),
+          "extrude": rng.uniform(size=m) < 0.7, "layer": np.arange(m) // 10, "source": np.arange(-1, m - 1)}
+    mv["drot"] = np.r_[0.0, np.maximum(np.abs(np.diff(mv["b"])), np.abs(np.diff(mv["c"])))]
+    out = _split_rotary(mv, 2.0)
+    assert len(out["xyz"]) > m
+    on = out["source"] >= 0
+    assert np.array_equal(out["xyz"][on], mv["xyz"][out["source"][on] + 1])
+    assert np.array_equal(out["c"][on], mv["c"][out["source"][on] + 1])
+    assert np.abs(np.diff(out["c"])).max() <= 2.0 + 1e-9 and np.abs(np.diff(out["b"])).max() <= 2.0 + 1e-9
+    assert np.isclose(out["de"].sum(), mv["de"].sum()) and np.isclose(out["dt"].sum(), mv["dt"].sum())
+    # nothing to split: the same arrays, not copies
+    still = _split_rotary(mv, 100.0)
+    assert still["xyz"] is mv["xyz"] and still["c"] is mv["c"] and np.array_equal(still["source"], mv["source"])

@@ -203,3 +203,20 @@ def test_estimate_matches_a_time_stepped_run_of_the_gcode(tmp_path, synthetic_to
     assert summary["estimated_print_time_s"] > summary["nominal_print_time_s"]
     assert 0.0 < summary["accel_limited_fraction"] < 1.0
     assert summary["n_moves_below_min_s"] == int(((program.time_s > 0) & (program.time_s < profile.feeds.min_move_s)).sum())
+
+
+def test_schedule_in_blocks_equals_one_block(monkeypatch):
+    from neuralslicer.motion import timing
+    rng = np.random.default_rng(8)
+    machine = np.cumsum(rng.normal(size=(4001, 5)), axis=0)
+    machine[100:110] = machine[99]                         # moves without axis motion
+    planned = rng.uniform(0, 0.1, len(machine))
+    feeds = Feeds()
+    whole = timing.schedule(machine, planned, feeds)
+    monkeypatch.setattr(timing, "_ROWS", 333)
+    blocks = timing.schedule(machine, planned, feeds)
+    assert np.array_equal(whole[0], blocks[0]) and np.array_equal(whole[1], blocks[1])
+    assert np.array_equal(whole[0], move_times(machine, planned, feeds))
+    summary = program_time(type("P", (), {"machine": machine, "time_s": planned,
+                                          "profile": load_profile("table_bc_linuxcnc").model_copy(update={"feeds": feeds})})())
+    assert summary["estimated_print_time_s"] == pytest.approx(float(whole[0].sum()))

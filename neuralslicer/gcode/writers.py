@@ -7,36 +7,99 @@ from typing import Iterator
 import numpy as np
 
 from neuralslicer.motion.planning import TRAVEL, MachineProgram, program_metrics
-from neuralslicer.motion.timing import move_times
+from neuralslicer.motion.timing import schedule
 from neuralslicer.fileio import atomic_path
 
 MIN_MOVE_S = 1e-4
 
 
-def _fmt(values: np.ndarray, decimals: int) -> np.ndarray:
-    """Fixed-point strings without negative zero."""
-    v = np.round(np.asarray(values, np.float64), decimals)
-    v[v == 0] = 0.0
-    return np.char.mod(f"%.{decimals}f", v)
+_POW10 = 10 ** np.arange(19, dtype=np.int64)
 
 
-def _words(letter: str, strings: np.ndarray, always: np.ndarray | None = None) -> np.ndarray:
-    """``letter + value`` where the value changed from the previous line (modal), else ''."""
-    changed = np.ones(len(strings), bool)
-    changed[1:] = strings[1:] != strings[:-1]
-    if always is not None:
-        changed |= always
-    return np.where(changed, np.char.add(letter, strings), "")
+def fixed_point(values: np.ndarray, decimals: int | np.ndarray) -> np.ndarray:
+    """The integers (n,) int64 that ``"%.{decimals}f"`` of ``np.round(values, decimals)`` writes, without the
+    decimal point: ``np.rint(values * 10**decimals)`` (numpy's rounding); decimals a number or one per value."""
+    v = np.asarray(values, np.float64)
+    if not np.isfinite(v).all():
+        raise ValueError("G-code values must be finite: the program holds NaN or infinite coordinates")
+    return np.rint(v * np.power(10.0, decimals)).astype(np.int64)
 
 
-def _join_lines(prefix: np.ndarray, cols: list[np.ndarray]) -> list[str]:
-    return [" ".join(w for w in words if w) for words in zip(prefix, *cols)]
+class _Words:
+    """One word per line (``letter`` + fixed-point number, ``digits`` the int64 of ``fixed_point``), written where
+    ``present``."""
+
+    def __init__(self, letter: str, digits: np.ndarray, decimals: int | np.ndarray, present: np.ndarray | None = None):
+        self.letter = letter.encode()
+        self.digits = digits
+        self.decimals = np.broadcast_to(np.asarray(decimals, np.int64), digits.shape)
+        self.present = np.ones(len(digits), bool) if present is None else present
+
+    @classmethod
+    def modal(cls, letter: str, digits: np.ndarray, decimals: int, always: np.ndarray | None = None) -> "_Words":
+        """Written where the number changed from the previous line (and where ``always``)."""
+        changed = np.ones(len(digits), bool)
+        changed[1:] = digits[1:] != digits[:-1]
+        if always is not None:
+            changed |= always
+        return cls(letter, digits, decimals, changed)
+
+    def __getitem__(self, rows: slice) -> "_Words":
+        return _Words(self.letter.decode(), self.digits[rows], self.decimals[rows], self.present[rows])
+
+    def lengths(self) -> tuple[np.ndarray, np.ndarray]:
+        """Characters of each word (0 where absent) and of its digits with the decimal point (without sign)."""
+        mag = np.abs(self.digits)
+        n_digits = np.maximum(np.searchsorted(_POW10, mag, side="right"), self.decimals + 1)
+        body = n_digits + 1                                         # the decimal point (decimals >= 1)
+        return np.where(self.present, len(self.letter) + (self.digits < 0) + body, 0), body
+
+
+def render_lines(prefix: np.ndarray, words: list[_Words]) -> bytes:
+    """Lines ``prefix word word ...`` (absent words skipped, one space between) as bytes, newline-terminated,
+    formatted in bulk: the same text as joining ``"%.{d}f"`` strings of the rounded numbers."""
+    n = len(prefix)
+    if n == 0:
+        return b""
+    vocab, code = np.unique(np.asarray(prefix, str), return_inverse=True)
+    vocab_b = [v.encode() for v in vocab]
+    sizes = [w.lengths() for w in words]
+    line_len = np.array([len(v) for v in vocab_b], np.int64)[code] + 1
+    for w, (size, _) in zip(words, sizes):
+        line_len += size + w.present
+    ends = np.cumsum(line_len)
+    buf = np.full(int(ends[-1]), ord(" "), np.uint8)
+    buf[ends - 1] = ord("\n")
+    pos = ends - line_len                                           # where each line's next word starts
+    for j, v in enumerate(vocab_b):
+        at = pos[code == j]
+        for i, ch in enumerate(v):
+            buf[at + i] = ch
+    pos = pos + np.array([len(v) for v in vocab_b], np.int64)[code]
+    for w, (size, body) in zip(words, sizes):
+        rows = np.flatnonzero(w.present)
+        at = pos[rows] + 1                                          # after the space
+        for i, ch in enumerate(w.letter):
+            buf[at + i] = ch
+        at = at + len(w.letter)
+        neg = w.digits[rows] < 0
+        buf[at[neg]] = ord("-")
+        last = at + neg + body[rows] - 1                            # the number's last character
+        dec = w.decimals[rows]
+        buf[last - dec] = ord(".")
+        mag = np.abs(w.digits[rows])
+        n_dig = body[rows] - 1
+        for t in range(int(n_dig.max(initial=0))):                  # digit t from the right
+            on = np.flatnonzero(n_dig > t)
+            buf[last[on] - t - (t >= dec[on])] = ord("0") + (mag[on] // _POW10[t]) % 10
+        pos = pos + size + w.present
+    return buf.tobytes()
 
 
 _CHUNK = 50_000
 
 
-def _axis_columns(program: MachineProgram, start: int, stop: int) -> list[np.ndarray]:
+def _axis_columns(program: MachineProgram, start: int, stop: int) -> list[_Words]:
     """Axis words of moves start..stop-1, modal against move start-1."""
     g = program.profile.gcode
     lx, ly, lz, lb, lc, le = program.axis_letters
@@ -48,12 +111,13 @@ def _axis_columns(program: MachineProgram, start: int, stop: int) -> list[np.nda
     for j, (letter, dec) in enumerate([(lx, g.decimals_linear), (ly, g.decimals_linear),
                                        (lz, g.decimals_linear), (lb, g.decimals_rotary),
                                        (lc, g.decimals_rotary)]):
-        cols.append(_words(letter, _fmt(m[:, j], dec), always=first))
-    cols.append(_words(le, _fmt(program.extruder[lo:stop], g.decimals_extruder), always=first))
+        cols.append(_Words.modal(letter, fixed_point(m[:, j], dec), dec, always=first))
+    cols.append(_Words.modal(le, fixed_point(program.extruder[lo:stop], g.decimals_extruder), g.decimals_extruder,
+                             always=first))
     return [c[start - lo:] for c in cols]
 
 
-def _layer_segments(program: MachineProgram, first: int = 0) -> Iterator[tuple[int, int, dict | None]]:
+def _layer_segments(program: MachineProgram, times: np.ndarray, first: int = 0) -> Iterator[tuple[int, int, dict | None]]:
     """(start, stop, layer info or None) over moves first..n-1: one segment per layer (info: its number,
     the count, the build-frame z range, the elapsed time and the fraction done at its start), cut into
     chunks of at most _CHUNK moves (info only on a layer's first chunk)."""
@@ -61,7 +125,7 @@ def _layer_segments(program: MachineProgram, first: int = 0) -> Iterator[tuple[i
     layer = program.layer
     starts = np.flatnonzero(np.diff(layer)) + 1
     bounds = np.concatenate([[0], starts, [n]])
-    elapsed = np.concatenate([[0.0], np.cumsum(move_times(program.machine, program.time_s, program.profile.feeds))])
+    elapsed = np.concatenate([[0.0], np.cumsum(times)])
     total = max(float(elapsed[-1]), 1e-9)       # the estimate under the axis limits (motion/timing.py)
     n_layers = len(bounds) - 1
     iso = program.attrs.get("isovalues") or []
@@ -101,8 +165,8 @@ def _machine_comment(program: MachineProgram) -> list[str]:
             f"machine: program B {b_lo:.2f}..{b_hi:.2f} deg, C {c_lo:.2f}..{c_hi:.2f} deg"]
 
 
-def _summary_comment(program: MachineProgram, open_c: str, close_c: str) -> list[str]:
-    met = program_metrics(program)
+def _summary_comment(program: MachineProgram, open_c: str, close_c: str, times: tuple | None = None) -> list[str]:
+    met = program_metrics(program, times)
     lx, ly, lz, lb, lc, le = program.axis_letters
     return [
         f"{open_c}Neural Slicer multi-axis program, profile {program.profile.name}{close_c}",
@@ -114,49 +178,51 @@ def _summary_comment(program: MachineProgram, open_c: str, close_c: str) -> list
     ] + [f"{open_c}{line}{close_c}" for line in _machine_comment(program)]
 
 
-def _linuxcnc_body(program: MachineProgram, start: int, stop: int) -> list[str]:
+def _linuxcnc_body(program: MachineProgram, start: int, stop: int) -> bytes:
     g = program.profile.gcode
     dt = np.maximum(program.time_s[start:stop], MIN_MOVE_S)
     if g.inverse_time:
-        feed = np.char.add("F", _fmt(60.0 / dt, 3))
+        feed = _Words("F", fixed_point(60.0 / dt, 3), 3)
     else:
         f = program.profile.feeds
         lo = max(start - 1, 0)
         v = np.where(program.kind[lo:stop] == TRAVEL, f.travel_mm_s, f.print_mm_s) * 60.0
-        feed = _words("F", _fmt(v, 1))[start - lo:]
-    prefix = np.full(stop - start, "G1", dtype=object)
+        feed = _Words.modal("F", fixed_point(v, 1), 1)[start - lo:]
+    prefix = np.full(stop - start, "G1")
     if start == 0:
         prefix[0] = "G0"
-        feed[0] = ""
-    return _join_lines(prefix, _axis_columns(program, start, stop) + [feed])
+        feed.present = feed.present.copy()
+        feed.present[0] = False
+    return render_lines(prefix, _axis_columns(program, start, stop) + [feed])
 
 
-def _linuxcnc_chunks(program: MachineProgram):
+def _text(lines: list[str]) -> bytes:
+    return "".join(ln + "\n" for ln in lines).encode()
+
+
+def _linuxcnc_chunks(program: MachineProgram) -> Iterator[bytes]:
     g = program.profile.gcode
     le = program.axis_letters[5]
     n = len(program)
-    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, "", "")]
+    times = schedule(program.machine, program.time_s, program.profile.feeds)
+    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, "", "", times)]
     head += ["G21 G90 G17 G40 G49 G80 G94", "G64 P0.01", f"G92 {le}0"] + list(g.header)
-    yield head
+    yield _text(head)
     yield _linuxcnc_body(program, 0, min(1, n))
-    yield ["G93" if g.inverse_time else "G94"]
-    for start, stop, info in _layer_segments(program, first=1):
-        yield ([f"({_layer_comment(info)})"] if info else []) + _linuxcnc_body(program, start, stop)
-    yield ["G94", "G92.1"] + list(g.footer) + ["M2"]
+    yield _text(["G93" if g.inverse_time else "G94"])
+    for start, stop, info in _layer_segments(program, times[0], first=1):
+        yield _text([f"({_layer_comment(info)})"] if info else []) + _linuxcnc_body(program, start, stop)
+    yield _text(["G94", "G92.1"] + list(g.footer) + ["M2"])
 
 
-def _feed_words(mm_min: np.ndarray) -> np.ndarray:
+def _feed_words(mm_min: np.ndarray) -> _Words:
     """``F`` words rounded to 1e-4 relative at most (1 to 8 decimals): a slow feed keeps its digits."""
     f = np.asarray(mm_min, np.float64)
     dec = np.clip(np.ceil(3.7 - np.log10(f)), 1, 8).astype(np.int64)
-    out = np.empty(len(f), dtype=object)
-    for d in np.unique(dec):
-        sel = dec == d
-        out[sel] = np.char.add("F", _fmt(f[sel], int(d)))
-    return out
+    return _Words("F", fixed_point(f, dec), dec)
 
 
-def _reprap_body(program: MachineProgram, start: int, stop: int) -> list[str]:
+def _reprap_body(program: MachineProgram, start: int, stop: int) -> bytes:
     """G0/G1 lines of moves start..stop-1 with F (mm/min) such that the firmware's distance over F is the
     move's planned time: the distance as RepRapFirmware and Marlin measure it (NIST RS274 rule A) from the
     coordinates as written (rounded): with ``feed_basis`` "xyz" the XYZ distance when a linear axis moves,
@@ -178,37 +244,40 @@ def _reprap_body(program: MachineProgram, start: int, stop: int) -> list[str]:
     rate = np.where(dist > 0, dist / dt * 60.0, program.profile.feeds.travel_mm_s * 60.0)
     feed = _feed_words(rate)[start - lo:]
     kind = program.kind[start:stop]
-    prefix = np.where(kind == TRAVEL, "G0", "G1").astype(object)
+    prefix = np.where(kind == TRAVEL, "G0", "G1")
     if start == 0:
-        feed[0] = "F" + f"{program.profile.feeds.travel_mm_s * 60.0:.1f}"
-    return _join_lines(prefix, _axis_columns(program, start, stop) + [feed])
+        first = f"{program.profile.feeds.travel_mm_s * 60.0:.1f}"
+        feed.digits, feed.decimals = feed.digits.copy(), feed.decimals.copy()
+        feed.digits[0], feed.decimals[0] = int(first.replace(".", "")), 1
+    return render_lines(prefix, _axis_columns(program, start, stop) + [feed])
 
 
-def _reprap_chunks(program: MachineProgram):
+def _reprap_chunks(program: MachineProgram) -> Iterator[bytes]:
     g = program.profile.gcode
-    head = ["; " + s for s in _summary_comment(program, "", "")]
+    times = schedule(program.machine, program.time_s, program.profile.feeds)
+    head = ["; " + s for s in _summary_comment(program, "", "", times)]
     head += ["G21", "G90", "M82"]
     if g.bed_temp_c is not None:
         head += [f"M140 S{g.bed_temp_c:.0f}", f"M190 S{g.bed_temp_c:.0f}"]
     if g.nozzle_temp_c is not None:
         head += [f"M104 S{g.nozzle_temp_c:.0f}", f"M109 S{g.nozzle_temp_c:.0f}"]
     head += [f"G92 {program.axis_letters[5]}0"] + list(g.header)
-    yield head
-    for start, stop, info in _layer_segments(program):
+    yield _text(head)
+    for start, stop, info in _layer_segments(program, times[0]):
         layer = ([f";LAYER:{info['number'] - 1}", f"; {_layer_comment(info)}",
                   f"M73 P{int(100 * info['done'])} R{int(np.ceil(info['remaining_s'] / 60))}"] if info else [])
-        yield layer + _reprap_body(program, start, stop)
-    yield ["M73 P100 R0", "M104 S0", "M140 S0"] + list(g.footer) + ["M84"]
+        yield _text(layer) + _reprap_body(program, start, stop)
+    yield _text(["M73 P100 R0", "M104 S0", "M140 S0"] + list(g.footer) + ["M84"])
 
 
 def linuxcnc_lines(program: MachineProgram) -> list[str]:
     """RS274/NGC for LinuxCNC: G21 G90, G93 inverse-time feeds (or G94), filament on the A-like axis, M2."""
-    return [ln for chunk in _linuxcnc_chunks(program) for ln in chunk]
+    return b"".join(_linuxcnc_chunks(program)).decode().split("\n")[:-1]
 
 
 def reprap_lines(program: MachineProgram) -> list[str]:
     """RepRap/Marlin G-code: G21 G90 M82, absolute E, F in mm/min over the profile's feed basis."""
-    return [ln for chunk in _reprap_chunks(program) for ln in chunk]
+    return b"".join(_reprap_chunks(program)).decode().split("\n")[:-1]
 
 
 def gcode_lines(program: MachineProgram) -> list[str]:
@@ -222,9 +291,7 @@ def write_gcode(path: str | Path, program: MachineProgram) -> Path:
     """Write the program as G-code in its profile's dialect (atomic)."""
     chunks = _linuxcnc_chunks(program) if program.profile.gcode.dialect == "linuxcnc" else _reprap_chunks(program)
     with atomic_path(path) as tmp:
-        with open(tmp, "w") as fh:
-            for lines in chunks:
-                if lines:
-                    fh.write("\n".join(lines))
-                    fh.write("\n")
+        with open(tmp, "wb") as fh:
+            for chunk in chunks:
+                fh.write(chunk)
     return Path(path)

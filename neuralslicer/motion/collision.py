@@ -9,8 +9,9 @@ the cone, a row of balls in the holder) certify a hit with one nearest-neighbour
 the poses left, the points inside balls that together enclose the head (slabs of the cone and
 the holder, each about as long as wide) are fetched from the trees (counted first in C, so poses
 with nothing nearby cost one query each) and tested exactly against the cone and the cylinder.
-On a part printed bottom-up the previous layers lie below the tip and outside every ball, so the
-check costs a few ball counts per waypoint.
+Poses whose head lies wholly above the material's highest point (``head_lowest_z``) are skipped, and
+the trees are built only when a pose is left to query: on a part printed bottom-up with a vertical
+tool, a planar part, the check costs a few array operations per waypoint.
 The platform test is exact: the lowest point of the cone and of the holder against z = platform_z.
 """
 from __future__ import annotations
@@ -179,21 +180,74 @@ class _Cells:
 
 
 class _TreeSet:
-    """Points added in batches, queried as a union (Bentley-Saxe logarithmic method)."""
+    """Points added in batches, queried as a union (Bentley-Saxe logarithmic method). The trees are built on
+    the first query (``blocks``), so material that no pose can reach (``top``) costs no tree."""
 
     def __init__(self) -> None:
-        self.blocks: list[tuple[FloatArray, cKDTree]] = []
-        self.cells: list[_Cells] = []
+        self._blocks: list[tuple[FloatArray, cKDTree]] = []
+        self._cells: list[_Cells] = []
+        self._pending: list[FloatArray] = []
+        #: highest z of all points added (-inf when empty)
+        self.top = -np.inf
 
     def add(self, pts: FloatArray) -> None:
-        """Add a batch of points (k, 3), merging blocks of similar size."""
+        """Add a batch of points (k, 3); its tree is merged in on the next query."""
         if len(pts) == 0:
             return
-        while self.blocks and len(self.blocks[-1][0]) <= len(pts):
-            pts = np.concatenate([self.blocks.pop()[0], pts])
-            self.cells.pop()
-        self.blocks.append((pts, cKDTree(pts)))
-        self.cells.append(_Cells.of(pts))
+        self._pending.append(pts)
+        self.top = max(self.top, float(pts[:, 2].max()))
+
+    def _build(self, pts: FloatArray) -> None:
+        """Merge a batch into the trees, merging blocks of similar size."""
+        while self._blocks and len(self._blocks[-1][0]) <= len(pts):
+            pts = np.concatenate([self._blocks.pop()[0], pts])
+            self._cells.pop()
+        self._blocks.append((pts, cKDTree(pts)))
+        self._cells.append(_Cells.of(pts))
+
+    def _flush(self) -> None:
+        for pts in self._pending:
+            self._build(pts)
+        self._pending = []
+
+    @property
+    def blocks(self) -> list[tuple[FloatArray, cKDTree]]:
+        """(points (k, 3), KD-tree) per block."""
+        self._flush()
+        return self._blocks
+
+    @property
+    def cells(self) -> list[_Cells]:
+        """The cells of each block's points (``_Cells``), in the order of ``blocks``."""
+        self._flush()
+        return self._cells
+
+
+def head_lowest_z(xyz: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: float) -> FloatArray:
+    """Lowest z (n,) of the part of the head above ``min_height`` along the tool axis (what ``_inside_head``
+    counts), for tips ``xyz`` (n, 3) and unit axes (n, 3); exact up to rounding. The cone frustum and the
+    holder are linear in the height along the axis, so the lowest point lies on one of their end rims."""
+    az = np.clip(axis[:, 2], -1.0, 1.0)
+    horiz = np.sqrt(np.maximum(0.0, 1.0 - az ** 2))
+    L, ta = nozzle.cone_length, np.tan(np.radians(nozzle.cone_half_angle_deg))
+    h0 = min(max(min_height, 0.0), L)
+    low = np.minimum(h0 * (az - ta * horiz), L * (az - ta * horiz))
+    if nozzle.holder_length > 0:
+        for h in (L, L + nozzle.holder_length):
+            low = np.minimum(low, h * az - nozzle.holder_radius * horiz)
+    return xyz[:, 2] + low
+
+
+#: margin (mm) of the reach test: rounding in the exact tests moves points by far less
+_REACH_TOL = 1e-6
+
+
+def _may_reach(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: Nozzle,
+               min_height: float) -> BoolArray:
+    """Poses (n,) whose head may hold material: those with the head's lowest point (``head_lowest_z``) not above
+    the material's top; poses with an axis that is not of unit length are always kept."""
+    unit = np.abs(np.einsum("ij,ij->i", axis, axis) - 1.0) < 1e-9
+    return ~unit | (head_lowest_z(xyz, axis, nozzle, min_height) <= material.top + _REACH_TOL)
 
 
 def _holder_distance(d: FloatArray, axis: FloatArray, nozzle: Nozzle) -> FloatArray:
@@ -259,7 +313,12 @@ def _head_hits(material: _TreeSet, xyz: FloatArray, axis: FloatArray, nozzle: No
     """Exact test of material points against the head at each pose, candidates from ball queries."""
     hit = np.zeros(len(xyz), bool)
     loc = np.zeros((len(xyz), 3))
-    if not material.blocks or len(xyz) == 0:
+    if len(xyz) == 0 or material.top == -np.inf:
+        return hit, loc
+    near = np.flatnonzero(_may_reach(material, xyz, axis, nozzle, min_height))
+    if len(near) < len(xyz):                      # the others' heads lie wholly above the material
+        if len(near):
+            hit[near], loc[near] = _head_hits(material, xyz[near], axis[near], nozzle, min_height, budget)
         return hit, loc
     for pts, tree, centres, rc, todo in _open_queries(material, hit, xyz, axis, head_cores(nozzle, min_height)):
         dist, near = tree.query(centres[todo], k=1, distance_upper_bound=rc)
@@ -377,13 +436,13 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
     material = _TreeSet()
     for grp in np.split(order, bounds):
         ask = grp[wanted[grp]]
-        if material.blocks and len(ask):
+        if material.top > -np.inf and len(ask):
             g_hit, g_loc = _head_hits(material, tp.xyz[ask], tp.axis[ask], nozzle, min_height)
             new = g_hit & ~hit[ask]
             hit[ask[new]] = True
             loc[ask[new]] = g_loc[new]
             kind[ask[new]] = PART
-        if material.blocks and len(s_to):
+        if material.top > -np.inf and len(s_to):
             sel = np.flatnonzero(s_layer == tp.layer[grp[0]])
             if len(sel):
                 t_hit, t_loc = _head_hits(material, s_xyz[sel], s_axis[sel], nozzle, min_height)

@@ -24,13 +24,42 @@ from neuralslicer.types import BoolArray, FloatArray
 
 
 def _wrap(x: FloatArray) -> FloatArray:
-    """Wrap angles (rad) to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - x, 2 * np.pi)
+    """Wrap angles (rad) to (-pi, pi]: pi - ((pi - x) mod 2 pi), the modulo taken only where it changes the
+    value (most angles are in range already; np.mod of a value in [0, 2 pi) is that value)."""
+    y = np.pi - np.asarray(x, np.float64)
+    out = np.array(y, np.float64, ndmin=1)
+    far = np.flatnonzero((out < 0.0) | (out >= 2 * np.pi))
+    out[far] = np.mod(out[far], 2 * np.pi)
+    return np.pi - out.reshape(y.shape)
+
+
+#: rows per block of the element-wise kinematics (bounds their temporaries to a few tens of MB)
+ROWS_PER_BLOCK = 1 << 19
+
+
+def _blocks(n: int) -> range:
+    return range(0, n, ROWS_PER_BLOCK)
 
 
 def machine_position(part_xyz: FloatArray, b_deg: FloatArray, c_deg: FloatArray, kin: Kinematics,
-                     part_offset: FloatArray) -> FloatArray:
-    """Machine XYZ (n, 3) that puts the tool tip on ``part_xyz`` (n, 3) at table angles B, C (deg)."""
+                     part_offset: FloatArray, out: FloatArray | None = None) -> FloatArray:
+    """Machine XYZ (n, 3) that puts the tool tip on ``part_xyz`` (n, 3) at table angles B, C (deg).
+
+    out : optional (n, 3) array (or view) to write into; computed in blocks of rows, so the temporaries
+    stay small for millions of moves.
+    """
+    part_xyz = np.asarray(part_xyz, np.float64).reshape(-1, 3)
+    n = len(part_xyz)
+    b_deg, c_deg = (np.broadcast_to(np.asarray(v, np.float64), (n,)) for v in (b_deg, c_deg))
+    out = np.empty((n, 3)) if out is None else out
+    for a in _blocks(n):
+        s = slice(a, a + ROWS_PER_BLOCK)
+        out[s, 0], out[s, 1], out[s, 2] = _machine_position(part_xyz[s], b_deg[s], c_deg[s], kin, part_offset)
+    return out
+
+
+def _machine_position(part_xyz: FloatArray, b_deg: FloatArray, c_deg: FloatArray, kin: Kinematics,
+                      part_offset: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     b, c = np.radians(b_deg), np.radians(c_deg)
     r = np.asarray(part_xyz, np.float64) + np.asarray(part_offset, np.float64)
     cz, sz = np.cos(c), np.sin(c)
@@ -39,15 +68,43 @@ def machine_position(part_xyz: FloatArray, b_deg: FloatArray, c_deg: FloatArray,
     rx, ry, rz = rx + off[0], ry + off[1], rz + off[2]
     cb, sb = np.cos(b), np.sin(b)
     piv = np.asarray(kin.pivot, np.float64)
-    return np.stack([cb * rx + sb * rz + piv[0], ry + piv[1], -sb * rx + cb * rz + piv[2]], axis=1)
+    return cb * rx + sb * rz + piv[0], ry + piv[1], -sb * rx + cb * rz + piv[2]
+
+
+def tool_axis(b_deg: FloatArray, c_deg: FloatArray, out: FloatArray | None = None) -> FloatArray:
+    """Tool axis (n, 3) in the build frame at table angles B, C (deg): R_z(-C) R_y(-B) +Z (blocks of rows,
+    written into ``out`` when given)."""
+    b_deg, c_deg = np.asarray(b_deg, np.float64), np.asarray(c_deg, np.float64)
+    n = len(b_deg)
+    out = np.empty((n, 3)) if out is None else out
+    for a in _blocks(n):
+        s = slice(a, a + ROWS_PER_BLOCK)
+        b, c = np.radians(np.asarray(b_deg[s], np.float64)), np.radians(np.asarray(c_deg[s], np.float64))
+        sb = np.sin(b)
+        out[s] = np.stack([-np.cos(c) * sb, np.sin(c) * sb, np.cos(b)], axis=1)
+    return out
 
 
 def forward_kinematics(machine_xyz: FloatArray, b_deg: FloatArray, c_deg: FloatArray, kin: Kinematics,
                        part_offset: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Tool tip and tool axis in the build frame for machine XYZ (n, 3) and B, C (deg): (n,3), (n,3).
 
-    p = R_z(-C) (R_y(-B) (m - pivot) - c_offset) - part_offset; axis = R_z(-C) R_y(-B) +Z.
+    p = R_z(-C) (R_y(-B) (m - pivot) - c_offset) - part_offset; axis = R_z(-C) R_y(-B) +Z. Computed in
+    blocks of rows.
     """
+    machine_xyz = np.asarray(machine_xyz, np.float64).reshape(-1, 3)
+    n = len(machine_xyz)
+    b_deg, c_deg = (np.broadcast_to(np.asarray(v, np.float64), (n,)) for v in (b_deg, c_deg))
+    p, axis = np.empty((n, 3)), np.empty((n, 3))
+    for a in _blocks(n):
+        s = slice(a, a + ROWS_PER_BLOCK)
+        (p[s, 0], p[s, 1], p[s, 2]), (axis[s, 0], axis[s, 1], axis[s, 2]) = _forward_kinematics(
+            machine_xyz[s], b_deg[s], c_deg[s], kin, part_offset)
+    return p, axis
+
+
+def _forward_kinematics(machine_xyz: FloatArray, b_deg: FloatArray, c_deg: FloatArray, kin: Kinematics,
+                        part_offset: FloatArray) -> tuple[FloatArray, FloatArray]:
     b, c = np.radians(np.asarray(b_deg, np.float64)), np.radians(np.asarray(c_deg, np.float64))
     cb, sb, cc, sc = np.cos(b), np.sin(b), np.cos(c), np.sin(c)
     m = np.asarray(machine_xyz, np.float64) - np.asarray(kin.pivot, np.float64)
@@ -56,9 +113,7 @@ def forward_kinematics(machine_xyz: FloatArray, b_deg: FloatArray, c_deg: FloatA
     ry = m[:, 1] - off[1]
     rz = sb * m[:, 0] + cb * m[:, 2] - off[2]
     po = np.asarray(part_offset, np.float64)
-    p = np.stack([cc * rx + sc * ry - po[0], -sc * rx + cc * ry - po[1], rz - po[2]], axis=1)
-    axis = np.stack([-cc * sb, sc * sb, cb], axis=1)
-    return p, axis
+    return (cc * rx + sc * ry - po[0], -sc * rx + cc * ry - po[1], rz - po[2]), (-cc * sb, sc * sb, cb)
 
 
 def ik_candidates(axis: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -6,7 +6,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from neuralslicer.errors import PlanError
-from neuralslicer.motion.kinematics import forward_kinematics, inverse_kinematics, machine_position
+from neuralslicer.motion.kinematics import (ROWS_PER_BLOCK, forward_kinematics, inverse_kinematics, machine_position,
+                                            tool_axis)
 from neuralslicer.motion.profile import Feeds, MachineProfile
 from neuralslicer.motion.timing import program_time
 from neuralslicer.toolpath.types import Toolpaths
@@ -112,43 +113,72 @@ def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
     position, B/C by IK with its singular flags, filament and duration of the move arriving there."""
     kin, f = profile.kinematics, profile.feeds
     lift = float(tp.attrs.get("config", {}).get("travel_lift", 1.0)) or 1.0
-    first = lambda a, v: np.concatenate([v, a])  # noqa: E731
-    xyz = first(tp.xyz, tp.xyz[:1] + lift * tp.axis[:1])
-    layer, extrude = first(tp.layer, tp.layer[:1]), first(tp.extrude, [False])
-    thick, width = first(tp.thickness, tp.thickness[:1]), first(tp.width, tp.width[:1])
-    b, c, singular, _ = inverse_kinematics(first(tp.axis, tp.axis[:1]), kin)   # the limits: check_limits
-    m = len(xyz)
-    seg, t_mean, w_mean, drot = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
-    seg[1:] = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-    t_mean[1:] = 0.5 * (thick[1:] + thick[:-1])
-    w_mean[1:] = 0.5 * (width[1:] + width[:-1])
-    de = np.where(extrude, profile.extrusion.flow * t_mean * w_mean * seg / filament_area(profile), 0.0)
+    m = len(tp) + 1
+
+    def first(a: np.ndarray, v: np.ndarray) -> np.ndarray:     # v, then a (one copy, no temporaries)
+        out = np.empty((m,) + a.shape[1:], np.result_type(a, np.asarray(v)))
+        out[0], out[1:] = v, a
+        return out
+
+    xyz = first(tp.xyz, tp.xyz[0] + lift * tp.axis[0])
+    layer, extrude = first(tp.layer, tp.layer[0]), first(tp.extrude, False)
+    b, c, singular, _ = inverse_kinematics(first(tp.axis, tp.axis[0]), kin)   # the limits: check_limits
+    seg, drot = np.zeros(m), np.zeros(m)
+    for a in range(1, m, ROWS_PER_BLOCK):
+        z = min(a + ROWS_PER_BLOCK, m)
+        seg[a:z] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
+
+    def mean_over_move(v: np.ndarray) -> np.ndarray:        # (m,) mean of the values at a move's two ends
+        out = np.zeros(m)
+        out[1] = 0.5 * (v[0] + v[0])
+        np.add(v[1:], v[:-1], out=out[2:])
+        out[2:] *= 0.5
+        return out
+
+    de = profile.extrusion.flow * mean_over_move(tp.thickness)   # flow x thickness x width x length / area
+    de *= mean_over_move(tp.width)
+    de *= seg
+    de /= filament_area(profile)
+    de[~extrude] = 0.0
     speed = move_speeds(layer, extrude, f)
     drot[1:] = np.maximum(np.abs(np.diff(b)), np.abs(np.diff(c)))
-    return {"xyz": xyz, "b": b, "c": c, "de": de, "dt": np.maximum(seg / speed, drot / f.rotary_deg_s),
-            "drot": drot, "extrude": extrude, "layer": layer, "source": first(np.arange(len(tp)), [-1]),
-            "singular": singular}
+    np.divide(seg, speed, out=seg)
+    dt = np.maximum(seg, drot / f.rotary_deg_s)
+    source = np.arange(-1, m - 1, dtype=np.int64)
+    return {"xyz": xyz, "b": b, "c": c, "de": de, "dt": dt, "drot": drot, "extrude": extrude, "layer": layer,
+            "source": source, "singular": singular}
 
 
 def _split_rotary(mv: dict[str, np.ndarray], max_step_deg: float) -> dict[str, np.ndarray]:
     """Moves whose rotary change exceeds the maximal step split into equal parts (linear in part xyz
-    and in B, C; filament and time shared); the source waypoint is kept on the last part."""
+    and in B, C; filament and time shared); the source waypoint is kept on the last part, which ends
+    exactly on the move's own pose. Without a move to split, the arrays are ``mv``'s (no copies)."""
     m = len(mv["xyz"])
     nsub = np.maximum(1, np.ceil(mv["drot"] / max_step_deg - 1e-9)).astype(np.int64)
     nsub[0] = 1
+    kind = np.where(mv["extrude"], PRINT, TRAVEL).astype(np.int8)
+    if not (nsub > 1).any():
+        return {**{k: mv[k] for k in ("xyz", "b", "c", "de", "dt", "source", "layer")}, "kind": kind}
     rep = np.repeat(np.arange(m), nsub)
     k = np.arange(len(rep)) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 1
-    frac = k / nsub[rep]
-    prev = np.maximum(rep - 1, 0)
-    lerp = lambda a: a[prev] + (a[rep] - a[prev]) * (frac if a.ndim == 1 else frac[:, None])  # noqa: E731
+    inner = np.flatnonzero(k < nsub[rep])                 # parts before the last one of a split move
+    frac = k[inner] / nsub[rep[inner]]
+    prev = np.maximum(rep[inner] - 1, 0)
+
+    def lerp(a: np.ndarray) -> np.ndarray:
+        out = a[rep]
+        out[inner] = a[prev] + (a[rep[inner]] - a[prev]) * (frac if a.ndim == 1 else frac[:, None])
+        return out
+
     return {"xyz": lerp(mv["xyz"]), "b": lerp(mv["b"]), "c": lerp(mv["c"]), "de": mv["de"][rep] / nsub[rep],
-            "dt": mv["dt"][rep] / nsub[rep], "kind": np.where(mv["extrude"][rep], PRINT, TRAVEL).astype(np.int8),
+            "dt": mv["dt"][rep] / nsub[rep], "kind": kind[rep],
             "source": np.where(k == nsub[rep], mv["source"][rep], -1), "layer": mv["layer"][rep]}
 
 
 def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tuple[dict[str, np.ndarray], int]:
     """Retract before and prime after travel runs longer than retract_min_travel (moves in place, at
-    the pose of the move before / the travel's end); the moves and the number of retractions."""
+    the pose of the move before / the travel's end); the moves and the number of retractions. Empties
+    ``e`` (its arrays are freed as their copies are made)."""
     ex, f = profile.extrusion, profile.feeds
     e_len = np.linalg.norm(np.diff(e["xyz"], axis=0, prepend=e["xyz"][:1]), axis=1)
     trav = e["kind"] == TRAVEL
@@ -165,9 +195,13 @@ def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tup
     order = np.argsort(ins_idx, kind="stable")
     ins_idx, ins_from, ins_de, ins_dt = ins_idx[order], ins_from[order], ins_de[order], ins_dt[order]
     ins = lambda a, v: np.insert(a, ins_idx, v, axis=0)  # noqa: E731
-    out = {k: ins(e[k], e[k][ins_from]) for k in ("xyz", "b", "c", "layer")}
-    out.update(de=ins(e["de"], ins_de), dt=ins(e["dt"], np.maximum(ins_dt, 1e-3)), kind=ins(e["kind"], RETRACT),
-               source=ins(e["source"], -1))
+    del e_len, trav, cum
+    out = {}
+    for k in ("xyz", "b", "c", "layer"):             # popped: each input array is freed once copied
+        a = e.pop(k)
+        out[k] = ins(a, a[ins_from])
+    out.update(de=ins(e.pop("de"), ins_de), dt=ins(e.pop("dt"), np.maximum(ins_dt, 1e-3)),
+               kind=ins(e.pop("kind"), RETRACT), source=ins(e.pop("source"), -1))
     out["dt"][0] = 0.0
     return out, int(len(r_at))
 
@@ -188,9 +222,15 @@ def _rotary_steps(frm: FloatArray, targets: list[FloatArray], max_step_deg: floa
 
 def safe_height(program: MachineProgram) -> float:
     """Machine Z at which the tool tip clears the part at any B/C: above the sphere around the pivot holding it."""
-    kin = program.profile.kinematics
-    reach = float(np.linalg.norm(program.part_xyz + program.part_offset, axis=1).max(initial=0.0))
-    return float(kin.pivot[2] + np.linalg.norm(kin.c_offset) + reach + program.profile.gcode.safe_clearance_mm)
+    return _safe_height(program.part_xyz, program.part_offset, program.profile)
+
+
+def _safe_height(part_xyz: FloatArray, part_offset: FloatArray, profile: MachineProfile) -> float:
+    """``safe_height`` of moves reaching ``part_xyz`` (n, 3) (blocks of rows)."""
+    kin = profile.kinematics
+    reach = max((float(np.linalg.norm(part_xyz[a:a + ROWS_PER_BLOCK] + part_offset, axis=1).max())
+                 for a in range(0, len(part_xyz), ROWS_PER_BLOCK)), default=0.0)
+    return float(kin.pivot[2] + np.linalg.norm(kin.c_offset) + reach + profile.gcode.safe_clearance_mm)
 
 
 def _home_c(c: float, lo: float | None, hi: float | None) -> float:
@@ -203,37 +243,56 @@ def _home_c(c: float, lo: float | None, hi: float | None) -> float:
     return float(360.0 * k)
 
 
-def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None) -> MachineProgram:
+def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None, consume: bool = False) -> MachineProgram:
     """The program between a safe start (safe height over the approach point with B = C = 0, rotary axes to the
     first pose up there, the approach down the tool axis, prime) and a safe end (retract, lift to the safe
-    height, B to 0 and C to its nearest full turn, park): all inserted moves, source -1."""
+    height, B to 0 and C to its nearest full turn, park): all inserted moves, source -1. With ``consume`` the
+    input's arrays are released (set empty) as soon as they are copied, so the two programs are not held at once."""
     prof = program.profile
     kin, f, ex, g = prof.kinematics, prof.feeds, prof.extrusion, prof.gcode
     z_safe = safe_height(program) if z_safe is None else z_safe
-    m0, mn = program.machine[0], program.machine[-1]
+    m0, mn = program.machine[0].copy(), program.machine[-1].copy()
     above0 = np.array([m0[0], m0[1], z_safe, 0.0, _home_c(m0[4], kin.c_min_deg, kin.c_max_deg)])
     start = np.vstack([above0[None], _rotary_steps(above0, [np.r_[m0[:2], z_safe, m0[3:5]]], kin.max_rotary_step_deg)])
     home = np.r_[mn[:2], z_safe, 0.0, _home_c(mn[4], kin.c_min_deg, kin.c_max_deg)]
     park = np.r_[g.park_xy if g.park_xy is not None else mn[:2], z_safe, home[3:5]]
     end = _rotary_steps(mn, [np.r_[mn[:2], z_safe, mn[3:5]], home, park], kin.max_rotary_step_deg)
     # moves: start..., approach (program move 0), prime, program moves 1.., retract, end...
-    machine = np.vstack([start, program.machine[:1], program.machine[:1], program.machine[1:], program.machine[-1:], end])
+    pm = program.machine
+    machine = np.concatenate([start, pm[:1], pm[:1], pm[1:], pm[-1:], end])
+    del pm
     n_s, n_e = len(start), len(end)
-    kind = np.r_[np.full(n_s, TRAVEL), program.kind[:1], RETRACT, program.kind[1:], RETRACT, np.full(n_e, TRAVEL)]
-    de_prog = np.diff(program.extruder, prepend=0.0)
-    de = np.r_[np.zeros(n_s), de_prog[:1], ex.prime_mm, de_prog[1:], -ex.retract_mm, np.zeros(n_e)]
-    travel_t = _travel_times(machine, f)
-    t_prog = program.time_s.copy()
-    t_prog[0] = travel_t[n_s]                      # the approach now comes from the safe height
-    time_s = np.r_[travel_t[:n_s], t_prog[:1], ex.prime_mm / f.retract_mm_s, t_prog[1:], ex.retract_mm / f.retract_mm_s,
-                   travel_t[len(travel_t) - n_e:]]
+
+    def done(*names: str) -> None:
+        for name in names if consume else ():
+            setattr(program, name, getattr(program, name)[:0].copy())
+
+    done("machine", "part_xyz", "part_axis")
+    # travel times of the inserted travels (each from the pose before; the program's own moves keep theirs)
+    t_start = _travel_times(machine[:n_s + 1], f)
+    t_end = _travel_times(machine[len(machine) - n_e - 1:], f)[1:]
+    retract = np.array([RETRACT], np.int8)
+    kind = np.concatenate([np.full(n_s, TRAVEL, np.int8), program.kind[:1].astype(np.int8), retract,
+                           program.kind[1:].astype(np.int8), retract, np.full(n_e, TRAVEL, np.int8)])
+    done("kind")
+    de = np.concatenate([np.zeros(n_s), program.extruder[:1], [ex.prime_mm], np.diff(program.extruder),
+                         [-ex.retract_mm], np.zeros(n_e)])
+    done("extruder")
+    time_s = np.concatenate([t_start[:n_s], program.time_s[:1], [ex.prime_mm / f.retract_mm_s], program.time_s[1:],
+                             [ex.retract_mm / f.retract_mm_s], t_end])
+    time_s[n_s] = t_start[n_s]                     # the approach now comes from the safe height
     time_s[0] = 0.0
-    layer = np.r_[np.full(n_s + 2, program.layer[0]), program.layer[1:], np.full(n_e + 1, program.layer[-1])]
-    source = np.r_[np.full(n_s, -1), program.source[:1], -1, program.source[1:], -1, np.full(n_e, -1)]
+    done("time_s")
+    layer = np.concatenate([np.full(n_s + 2, program.layer[0], np.int64), program.layer[1:],
+                            np.full(n_e + 1, program.layer[-1], np.int64)]).astype(np.int64, copy=False)
+    done("layer")
+    source = np.concatenate([np.full(n_s, -1, np.int64), program.source[:1], [-1], program.source[1:], [-1],
+                             np.full(n_e, -1, np.int64)]).astype(np.int64, copy=False)
+    done("source")
     p, a = forward_kinematics(machine[:, :3], machine[:, 3], machine[:, 4], kin, program.part_offset)
-    return MachineProgram(machine=machine, extruder=np.cumsum(de), time_s=time_s, kind=kind.astype(np.int8),
-                          source=source.astype(np.int64), layer=layer.astype(np.int64), part_xyz=p, part_axis=a,
-                          part_offset=program.part_offset, profile=prof, attrs={**program.attrs, "safe_z": z_safe})
+    return MachineProgram(machine=machine, extruder=np.cumsum(de, out=de), time_s=time_s, kind=kind, source=source,
+                          layer=layer, part_xyz=p, part_axis=a, part_offset=program.part_offset, profile=prof,
+                          attrs={**program.attrs, "safe_z": z_safe})
 
 
 def merge_short_moves(tp: Toolpaths, profile: MachineProfile) -> tuple[Toolpaths, int]:
@@ -396,29 +455,40 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     offset = (np.asarray(kin.part_offset, np.float64) if kin.part_offset is not None
               else auto_part_offset(tp, pz))
     mv = _moves(tp, profile)
-    split = _split_rotary(mv, kin.max_rotary_step_deg)
-    e, n_retractions = _retract_and_prime(split, profile)
-    mxyz = machine_position(e["xyz"], e["b"], e["c"], kin, offset)
-    machine = np.column_stack([mxyz, e["b"], e["c"]])
-    br, cr = np.radians(e["b"]), np.radians(e["c"])
-    a_fk = np.stack([-np.cos(cr) * np.sin(br), np.sin(cr) * np.sin(br), np.cos(br)], axis=1)  # FK tool axis
-    program = MachineProgram(machine=machine, extruder=np.cumsum(e["de"]), time_s=e["dt"], kind=e["kind"],
-                             source=e["source"].astype(np.int64), layer=e["layer"].astype(np.int64),
-                             part_xyz=e["xyz"], part_axis=a_fk, part_offset=offset, profile=profile)
-    z_safe = safe_height(program)
+    n_singular, n_moves = int(mv["singular"].sum()), len(mv["xyz"])
+    e = _split_rotary(mv, kin.max_rotary_step_deg)
+    n_inserted_rotary = len(e["xyz"]) - n_moves
+    del mv                                         # e may share its arrays: freed as _retract_and_prime copies
+    e, n_retractions = _retract_and_prime(e, profile)
+    n = len(e["xyz"])
+    machine = np.empty((n, 5))
+    machine_position(e["xyz"], e["b"], e["c"], kin, offset, out=machine[:, :3])
+    machine[:, 3], machine[:, 4] = e.pop("b"), e.pop("c")
+    z_safe = _safe_height(e["xyz"], offset, profile)
+    if profile.gcode.safe_start_end and n:
+        # the safe start and end recompute the part poses of every move: none needed before
+        part_xyz, part_axis = np.zeros((0, 3)), np.zeros((0, 3))
+        e.pop("xyz")
+    else:
+        part_xyz, part_axis = e.pop("xyz"), tool_axis(machine[:, 3], machine[:, 4])
+    program = MachineProgram(machine=machine, extruder=np.cumsum(e.pop("de")), time_s=e.pop("dt"), kind=e.pop("kind"),
+                             source=e.pop("source").astype(np.int64, copy=False),
+                             layer=e.pop("layer").astype(np.int64, copy=False),
+                             part_xyz=part_xyz, part_axis=part_axis, part_offset=offset, profile=profile)
+    del machine
     program, n_unwinds = unwind_c(program, z_safe)
-    if profile.gcode.safe_start_end and len(program):
-        program = _with_safe_start_end(program, z_safe)
+    if profile.gcode.safe_start_end and n:
+        program = _with_safe_start_end(program, z_safe, consume=True)
     check_limits(program)
     machine = program.machine
     b_all = machine[:, 3]
     program.attrs = {
         **program.attrs,
         "platform_z": pz,
-        "n_singular": int(mv["singular"].sum()),
+        "n_singular": n_singular,
         "n_rotary_out_of_range": 0,
         "n_c_unwinds": n_unwinds,
-        "n_inserted_rotary": int(len(split["xyz"]) - len(mv["xyz"])),
+        "n_inserted_rotary": int(n_inserted_rotary),
         "n_retractions": n_retractions,
         "max_rotary_step_deg": float(np.max(np.abs(np.diff(machine[:, 3:5], axis=0)), initial=0.0)),
         "b_range_deg": [float(b_all.min()), float(b_all.max())],
@@ -427,8 +497,9 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     return program
 
 
-def program_metrics(program: MachineProgram) -> dict:
-    """Totals of a program: time, path length, waypoints, material, filament."""
+def program_metrics(program: MachineProgram, times: tuple[FloatArray, FloatArray] | None = None) -> dict:
+    """Totals of a program: time, path length, waypoints, material, filament (``times``: its
+    ``timing.schedule`` when already computed)."""
     xyz = program.part_xyz
     seg = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
     kind = program.kind[1:]
@@ -436,7 +507,7 @@ def program_metrics(program: MachineProgram) -> dict:
     area = filament_area(program.profile)
     material = float(de[kind == PRINT].sum() * area / program.profile.extrusion.flow)
     return {
-        **program_time(program),
+        **program_time(program, times),
         "toolpath_length_mm": float(seg[kind == PRINT].sum()),
         "travel_length_mm": float(seg[kind == TRAVEL].sum()),
         "n_moves": len(program),

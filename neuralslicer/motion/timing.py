@@ -57,17 +57,42 @@ def junction_speeds(scaled: FloatArray, cruise: FloatArray, accel: FloatArray) -
     speeds in that space (cruise rate x scaled length); accel : (n,) accelerations of the moves' progress
     (1/s^2). The last move ends at rest; so does every move next to one without axis motion.
     """
+    length, cos = _lengths_and_turns(scaled)
+    return _junctions(length, cos, cruise, accel)
+
+
+#: rows per block of the per-move terms (bounds the (rows, 5) temporaries)
+_ROWS = 1 << 19
+
+
+def _lengths_and_turns(scaled: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Lengths (n,) of the scaled moves and the cosine (n - 1,) of the angle between each and the next
+    (0-length moves count as direction 0), in blocks of rows."""
     n = len(scaled)
-    length = np.linalg.norm(scaled, axis=1)
+    length, cos = np.empty(n), np.empty(max(n - 1, 0))
+    prev = None
+    for a in range(0, n, _ROWS):
+        block = scaled[a:a + _ROWS]
+        ln = np.linalg.norm(block, axis=1)
+        length[a:a + len(block)] = ln
+        unit = block / np.where(ln > _STILL, ln, 1.0)[:, None]
+        pair = unit if prev is None else np.concatenate([prev, unit])
+        cos[max(a - 1, 0):a + len(block) - 1] = np.clip(np.einsum("ij,ij->i", pair[:-1], pair[1:]), -1.0, 1.0)
+        prev = unit[-1:]
+    return length, cos
+
+
+def _junctions(length: FloatArray, cos: FloatArray, cruise: FloatArray, accel: FloatArray) -> FloatArray:
+    """``junction_speeds`` from the moves' scaled lengths (n,) and turn cosines (n - 1,)."""
+    n = len(length)
     moving = length > _STILL
-    unit = scaled / np.where(moving, length, 1.0)[:, None]
     cap = np.zeros(n)
     if n > 1:
-        cos = np.clip(np.einsum("ij,ij->i", unit[:-1], unit[1:]), -1.0, 1.0)
         both = moving[:-1] & moving[1:]
         cap[:-1] = np.where(both, np.minimum(cruise[:-1], cruise[1:]) * 0.5 * (1.0 + cos), 0.0)
     reach = np.where(moving, 2.0 * accel * length ** 2, 0.0)      # v_end^2 - v_start^2 a move can make
     p = np.cumsum(reach)
+    del reach
     sq = np.minimum.accumulate((cap ** 2 + p)[::-1])[::-1] - p    # backward: J_k^2 <= J_{k+1}^2 + reach_{k+1}
     sq = p + np.minimum(np.minimum.accumulate(sq - p), 0.0)      # forward: J_k^2 <= J_{k-1}^2 + reach_k
     return np.sqrt(np.maximum(sq, 0.0))
@@ -84,29 +109,50 @@ def trapezoid_times(rate: FloatArray, accel: FloatArray, start: FloatArray, end:
     return ramps + np.where(cruises, np.maximum(1.0 - ramp_len, 0.0) / rate, 0.0)
 
 
-def _schedule(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> tuple[FloatArray, FloatArray]:
-    """Trapezoidal times (n,) and cruise-only times (n,) of the moves (the module docstring's model)."""
+def schedule(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> tuple[FloatArray, FloatArray]:
+    """Trapezoidal times (n,) and cruise-only times (n,) of the moves (the module docstring's model): what
+    ``move_times`` and ``program_time`` compute, for callers that need both."""
     machine = np.asarray(machine, np.float64).reshape(-1, 5)
     planned = np.asarray(planned_s, np.float64).reshape(-1)
     n = len(machine)
-    delta = np.zeros((n, 5))
-    delta[1:] = np.diff(machine, axis=0)
     v_lim, a_lim = axis_limits(feeds)
-    scaled = delta / v_lim
-    length = np.linalg.norm(scaled, axis=1)
+    # per move, in blocks of rows: the scaled length and turn (junction_speeds), the largest scaled axis
+    # delta and the acceleration the slowest axis allows
+    length, cos, top, acc = np.empty(n), np.empty(max(n - 1, 0)), np.empty(n), np.empty(n)
+    prev = np.zeros((0, 5))  # the last scaled delta of the block before (turns across block ends)
+    for a in range(0, n, _ROWS):
+        z = min(a + _ROWS, n)
+        delta = np.empty((z - a, 5))
+        if a == 0:
+            delta[:1] = 0.0
+            np.subtract(machine[1:z], machine[:z - 1], out=delta[1:])
+        else:
+            np.subtract(machine[a:z], machine[a - 1:z - 1], out=delta)
+        scaled = delta / v_lim
+        top[a:z] = np.abs(scaled).max(axis=1)
+        with np.errstate(divide="ignore"):
+            acc[a:z] = np.min(a_lim / np.abs(delta), axis=1)
+        ln, turn = _lengths_and_turns(np.concatenate([prev, scaled]))
+        length[a:z] = ln[-(z - a):]
+        cos[max(a - 1, 0):z - 1] = turn
+        prev = scaled[-1:]
     moving = length > _STILL
     nominal = np.where(moving | (planned > 0), np.maximum(planned, feeds.min_move_s), 0.0)
-    rate = np.where(moving, 1.0 / np.where(moving, np.maximum(nominal, np.abs(scaled).max(axis=1)), 1.0), 0.0)
-    with np.errstate(divide="ignore"):
-        accel = np.where(moving, np.min(a_lim / np.abs(delta), axis=1), 0.0)
+    rate = np.where(moving, 1.0 / np.where(moving, np.maximum(nominal, top), 1.0), 0.0)
+    accel = np.where(moving, acc, 0.0)
+    del top, acc
     cruise_t = np.where(moving, 1.0 / np.where(moving, rate, 1.0), nominal)
-    junction = junction_speeds(scaled, rate * length, accel)
-    w = np.where(moving, length, 1.0)
-    start = np.concatenate([[0.0], junction[:-1]]) / w
-    end = junction / w
-    times = nominal.copy()
-    m = moving
-    times[m] = trapezoid_times(rate[m], accel[m], np.minimum(start[m], rate[m]), np.minimum(end[m], rate[m]))
+    junction = _junctions(length, cos, rate * length, accel)
+    del cos
+    times = nominal
+    for a in range(0, n, _ROWS):                  # the moves' trapezoids from their entry to exit speeds
+        z = min(a + _ROWS, n)
+        m = moving[a:z]
+        w = np.where(m, length[a:z], 1.0)
+        start = (junction[a - 1:z - 1] if a else np.r_[0.0, junction[:z - 1]]) / w
+        end = junction[a:z] / w
+        r = rate[a:z][m]
+        times[a:z][m] = trapezoid_times(r, accel[a:z][m], np.minimum(start[m], r), np.minimum(end[m], r))
     return times, cruise_t
 
 
@@ -117,20 +163,21 @@ def move_times(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> Floa
     (length / programmed speed, at least rotary change / rotary speed). Every move that turns an axis or
     has a planned duration takes at least ``feeds.min_move_s``.
     """
-    return _schedule(machine, planned_s, feeds)[0]
+    return schedule(machine, planned_s, feeds)[0]
 
 
-def program_time(program: TimedProgram) -> dict[str, float | int]:
+def program_time(program: TimedProgram, times: tuple[FloatArray, FloatArray] | None = None) -> dict[str, float | int]:
     """Print time of a program under its profile's axis limits.
 
     Returns ``estimated_print_time_s`` (trapezoidal moves, ``move_times``), ``nominal_print_time_s`` (sum
     of the planned durations), ``n_moves_below_min_s`` (planned moves shorter than ``feeds.min_move_s``)
     and ``accel_limited_fraction``: the share of the estimated time that acceleration adds to the moves
-    run at their (velocity- and min_move_s-limited) cruise rate throughout.
+    run at their (velocity- and min_move_s-limited) cruise rate throughout. ``times``: the program's
+    ``schedule`` when already computed.
     """
     feeds = program.profile.feeds
     planned = np.asarray(program.time_s, np.float64)
-    times, cruise_t = _schedule(program.machine, planned, feeds)
+    times, cruise_t = schedule(program.machine, planned, feeds) if times is None else times
     total = float(times.sum())
     return {
         "estimated_print_time_s": total,
