@@ -244,13 +244,15 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--inits", default="height,heat,user")
     p.add_argument("--ring-cache", default="", help="npz to cache the Ring inputs in (optional)")
+    p.add_argument("--no-save", action="store_true", help="print the figures only (a dry run leaves the results alone)")
     a = p.parse_args(argv)
     sizes = a.sizes.split(",")
     if a.part in ("solve", "all"):
         _merge("solve", bench_solve(sizes))
     if a.part in ("steps", "all"):
         rows = bench_steps(sizes, a.networks.split(","), a.steps, a.device)
-        _merge(f"steps_{rows[0]['device'] if rows else a.device}", rows)
+        if not a.no_save:
+            _merge(f"steps_{rows[0]['device'] if rows else a.device}", rows)
     if a.part in ("ring", "all"):
         _merge("ring", bench_ring(a.inits.split(","), Path(a.ring_cache) if a.ring_cache else None))
 

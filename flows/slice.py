@@ -18,7 +18,7 @@ from neuralslicer.scalar_field import smallest_clean_blend
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from flows.settings import artifact_key
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
-from tasks.codec import n_collisions, store_user_field
+from tasks.codec import n_collisions, read_part_collisions, store_user_field
 from tasks.common import run_step
 from tasks.export import export_task
 from tasks.fea import fea_task, stress_samples_task, verify_task
@@ -130,26 +130,39 @@ def slice_pipeline(
     neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width)
     # every field printed on the way to a collision-free program: (label, field, print)
     attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
+    # what the next field is refined against: every print so far (L_GC's pool grows around their collisions)
+    refine: dict[str, Any] = {}
+    label, smoothing = "optimised", 0
     for attempt in range(config.collision_retries + 1):
         if config.method == "s3":
             field_ref = log.run(s3_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
                                 objectives=objectives, config=config.s3)
         else:
             field_ref = log.run(field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
-                                objectives=objectives, config=neural, user_field=user)
+                                objectives=objectives, config=neural, user_field=user, **refine)
         layers = log.run(layers_task, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
         printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
                            machine=machine, t_max=config.layers.t_max)
-        factor = config.collision_smoothness_factor ** attempt
-        attempts.append(("optimised" if attempt == 0 else f"re-optimised, harmonic x{factor:g} + CA", field_ref, printing))
+        attempts.append((label, field_ref, printing))
         collisions = n_collisions(printing)
         if collisions == 0 or not objectives or attempt == config.collision_retries or config.method == "s3":
             break  # S3's own answer to collisions is a smoother rotation field: the planar blend below serves it
+        hits = len(read_part_collisions(printing)[0])
+        if "gc" in objectives and hits:
+            # the exact check names where the head hits: L_GC's pool is refined there, from the field that printed it
+            prints = [*refine.get("refine_prints", []), printing]
+            refine = {"refine_prints": prints, "warm_start": field_ref}
+            label = f"refined around the collisions of {len(prints)} print(s)"
+            get_run_logger().warning("%d nozzle collisions (%d of the head at a waypoint): refining the collision "
+                                     "term there", collisions, hits)
+            continue
         # the paper's fallback: smoother fields (larger harmonic weights) and the local collision term, then again
+        smoothing += 1
         neural = smoother(neural, config.collision_smoothness_factor)
         objectives = sorted(set(objectives) | {"ca"})
+        label = f"re-optimised, harmonic x{config.collision_smoothness_factor ** smoothing:g} + CA"
         get_run_logger().warning("%d nozzle collisions: re-optimising with harmonic weights x%g", collisions,
-                                 config.collision_smoothness_factor ** (attempt + 1))
+                                 config.collision_smoothness_factor ** smoothing)
     if collisions and objectives and config.collision_fallback == "blend":
         field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine,
                                                                  attempts)

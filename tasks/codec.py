@@ -14,7 +14,7 @@ from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Solid
-from neuralslicer.motion.collision import CollisionReport
+from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.neural.initial_guess import load_user_field
 from neuralslicer.outputs import Attempt, RunResults
@@ -88,7 +88,8 @@ def encode_print(tp: Toolpaths, program: MachineProgram, metrics: dict, collisio
     tp_arrays, tp_attrs = tp.to_arrays()
     prog_arrays, prog_attrs = program.to_arrays()
     arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()},
-              "collisions/indices": collisions.indices, "collisions/kind": collisions.kind}
+              "collisions/indices": collisions.indices, "collisions/kind": collisions.kind,
+              "collisions/locations": np.asarray(collisions.locations, dtype=np.float64).reshape(-1, 3)}
     return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
 
 
@@ -114,6 +115,22 @@ def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
     hit = np.zeros(len(arrays["toolpaths/xyz"]), bool)
     hit[np.asarray(arrays["collisions/indices"], np.int64)] = True
     return arrays["toolpaths/xyz"], hit
+
+
+def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+    """(hits (k,3), witnesses (k,3)) of a stored print: the waypoints whose head hit material or the platform and a
+    point it hit (NaN where the print predates stored locations); travel collisions are left out (the travel lift
+    is the planner's answer to those, the field cannot place the head there)."""
+    names = ["toolpaths/xyz", "collisions/indices", "collisions/kind"]
+    try:
+        arrays, _ = read(ref, [*names, "collisions/locations"])
+    except KeyError:
+        arrays, _ = read(ref, names)
+    idx = np.asarray(arrays["collisions/indices"], np.int64)
+    keep = np.asarray(arrays["collisions/kind"]) != TRAVEL_PATH
+    where = arrays.get("collisions/locations")
+    witnesses = np.asarray(where, np.float64)[keep] if where is not None else np.full((int(keep.sum()), 3), np.nan)
+    return np.asarray(arrays["toolpaths/xyz"], np.float64)[idx[keep]], witnesses
 
 
 def read_fea(ref: ArtifactRef) -> FEAResult:

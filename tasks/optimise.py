@@ -8,7 +8,7 @@ from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.model.solid import Solid
 from neuralslicer.neural.config import NeuralConfig
-from neuralslicer.neural.optimise import optimise_for_solid
+from neuralslicer.neural.optimise import Refinement, optimise_for_solid
 from neuralslicer.samples import SurfaceSamples
 from storage import ArtifactRef, ArtifactStore
 from tasks.progress import Progress, say
@@ -43,8 +43,10 @@ class StoreCheckpoints:
 
 def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
                      objectives: list[str], config: NeuralConfig, solid: Solid, user_field: np.ndarray | None = None,
-                     user_field_points: np.ndarray | None = None) -> tuple[dict, dict]:
-    """The field step with store checkpoints and a progress bar; arrays and attrs to store."""
+                     user_field_points: np.ndarray | None = None, refine: Refinement | None = None
+                     ) -> tuple[dict, dict]:
+    """The field step with store checkpoints and a progress bar; arrays and attrs to store. ``refine``: the
+    collisions of earlier prints to refine L_GC's pool around (and the weights to start from)."""
     checkpoints = StoreCheckpoints(ArtifactStore(out.store), f"{out.model}/checkpoints/{out.digest}")
     oc = config.optim
     if oc.target_overhang > 0 and "sr" not in objectives:
@@ -52,9 +54,13 @@ def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stre
             f"from step {oc.late_after}), no pool point's head hits earlier material and L_CA = 0, checked every "
             f"{oc.check_every} steps; else after {oc.max_steps} steps or when the loss stalls")
     shown = [k for k in PROGRESS_TERMS if k not in ("sf", "po", "sr", "gc") or k in objectives]
-    with Progress("optimise", total=config.optim.max_steps) as bar:
+    if refine is not None:
+        say(f"optimise: refining the collision term around {len(refine.hits)} colliding waypoints of the print"
+            + (", from the field that printed them" if refine.weights else ""))
+    budget = oc.refine.steps if refine is not None and refine.weights else oc.max_steps
+    with Progress("optimise", total=budget) as bar:
         result = optimise_for_solid(
-            solid, cage.vertices, cage.tets, samples, stress, objectives, config, user_field=user_field,
+            solid, cage.vertices, cage.tets, samples, stress, objectives, config, refine=refine, user_field=user_field,
             user_field_points=user_field_points, save_checkpoint=checkpoints.save, load_checkpoint=checkpoints.load,
             progress=lambda step, info: bar.update(step, **{k: float(info[k]) for k in shown if k in info}),
         )

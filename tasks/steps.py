@@ -14,13 +14,14 @@ from neuralslicer.model.spec import ModelSpec
 from neuralslicer.motion.pipeline import plan_print
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.neural.optimise import FieldResult, Refinement
 from neuralslicer.samples import surface_samples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
 from storage.content_cache import ContentCache, cache_root
-from tasks.codec import (encode_print, read_cage, read_field, read_field_history, read_layers, read_samples,
-                         read_solid, read_stress, read_user_field)
+from tasks.codec import (encode_print, read, read_cage, read_field, read_field_history, read_layers,
+                         read_part_collisions, read_samples, read_solid, read_stress, read_user_field)
 from tasks.common import pipeline_task
 from tasks.optimise import run_optimisation
 from tasks.progress import Progress, say
@@ -79,14 +80,22 @@ def _intact_cage(arrays: dict, attrs: dict) -> bool:
 @pipeline_task("field")
 def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
                stress: ArtifactRef | None, objectives: list[str], config: NeuralConfig,
-               user_field: ArtifactRef | None = None) -> tuple[dict, dict]:
-    """The printing field G: the height field without objectives, else the neural optimisation (checkpointed)."""
+               user_field: ArtifactRef | None = None, refine_prints: list[ArtifactRef] | None = None,
+               warm_start: ArtifactRef | None = None) -> tuple[dict, dict]:
+    """The printing field G: the height field without objectives, else the neural optimisation (checkpointed);
+    with ``refine_prints``, L_GC's pool refined around those prints' collisions, started from ``warm_start``'s
+    weights (the field that printed the last of them)."""
     c = read_cage(cage)
     if not objectives:
         arrays, attrs = ScalarField.height(c.vertices, c.tets).to_arrays()
         return arrays, {**attrs, "objectives": [], "steps": 0}
+    refine = None
+    if refine_prints:
+        found = [read_part_collisions(p) for p in refine_prints]
+        weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
+        refine = Refinement(np.concatenate([h for h, _ in found]), np.concatenate([w for _, w in found]), weights)
     return run_optimisation(out, c, read_samples(samples), read_stress(stress) if stress is not None else None,
-                            objectives, config, read_solid(model), *read_user_field(user_field))
+                            objectives, config, read_solid(model), *read_user_field(user_field), refine=refine)
 
 
 @pipeline_task("field_s3")

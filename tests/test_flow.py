@@ -286,3 +286,37 @@ def test_point_clouds_slice_end_to_end(tmp_path, model):
     assert metrics["model_genus"] == 1  # the block's through hole survives the reconstruction
     assert metrics["n_layers"] > 5 and metrics["n_waypoints"] > 1000 and (out / "print.gcode").stat().st_size > 0
     assert metrics["sf.overhang_area_fraction"] <= metrics["sf.overhang_area_fraction_planar"]
+
+
+def test_collisions_of_the_print_refine_the_collision_term(tmp_path, small_part):
+    """A colliding print's collisions refine L_GC's pool there (field step with refine_prints), warm-started from
+    the weights of the field that printed it; the flow takes this path whenever gc is an objective."""
+    from neuralslicer.config import SliceConfig
+    from neuralslicer.motion import load_profile
+    from storage import ArtifactRef, ArtifactStore
+    from tasks.codec import read_part_collisions
+    from tasks.steps import field_task
+
+    profile = load_profile("table_bc_linuxcnc").model_dump(mode="json")
+    profile["nozzle"] = {"cone_half_angle_deg": 85.0, "cone_length": 3.0, "holder_radius": 1.0, "holder_length": 1.0}
+    machine = tmp_path / "wide_nozzle.yaml"
+    machine.write_text(yaml.safe_dump(profile))
+    cfg = write_config(tmp_path / "cfg.yaml", machine=str(machine),
+                       neural={"optim": {"max_steps": 20, "checkpoint_every": 5, "refine": {"steps": 10}}})
+    out = tmp_path / "run"
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "sf")) == 0  # blind to the head: it collides
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_part_collisions"] + metrics["n_platform_collisions"] > 0
+    root = str(out / "store.zarr")
+    store = ArtifactStore(root, create=False)
+    ref = {step: ArtifactRef(root, f"lpart/{step}/{d}", d)
+           for step in ("model", "samples", "cage", "field", "toolpaths") for d in store.children(f"lpart/{step}")}
+    hits, witnesses = read_part_collisions(ref["toolpaths"])
+    assert len(hits) > 0 and np.isfinite(witnesses).all()
+    neural = SliceConfig.from_yaml(cfg).neural
+    refined = field_task(store=root, model=ref["model"], cage=ref["cage"], samples=ref["samples"], stress=None,
+                         objectives=["sf", "gc"], config=neural, refine_prints=[ref["toolpaths"]], warm_start=ref["field"])
+    attrs = store.attrs(refined.path)
+    record = attrs["refinement"]
+    assert record["warm_start"] and record["hits"] == len(hits) and record["added_points"] > 0
+    assert attrs["steps"] <= 10  # the refinement budget, from the earlier weights

@@ -121,6 +121,43 @@ class LossConfig(BaseModel):
     )
 
 
+class RefineConfig(BaseModel):
+    """Collision-driven refinement of L_GC's pool and the warm-started run that follows it
+    (``optimise_for_solid(..., refine=Refinement(...))``; see docs/neural.md)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    steps: int = Field(
+        300, ge=0,
+        description="step budget of a warm-started refinement run (a run refined without earlier weights starts "
+        "afresh and keeps optim.max_steps)")
+    spacing_factor: float = Field(
+        1.0 / 3.0, gt=0, le=1,
+        description="spacing of the added lattice, as a fraction of the pool spacing: a third puts a point within "
+        "0.3 pool spacings of any point of a strut at least a third of a pool spacing thick, finer than the "
+        "clearance (1.5 spacings) that carries the discretisation")
+    radius_factor: float = Field(
+        2.0, gt=0,
+        description="points are added within this many pool spacings of each colliding waypoint and each point "
+        "it hit: the Voronoi cell of the nearest base point and its neighbours, where the base pool could not "
+        "tell the collision apart")
+    max_points: int = Field(20_000, ge=0, description="at most this many points are added by one refinement")
+    max_pairs: int = Field(
+        10_000_000, ge=0,
+        description="at most this many ordered pairs along the refinement's links (the ring's whole pool has "
+        "6.2 M); the links beyond are left out with a warning")
+    lr: float | None = Field(
+        1e-4, gt=0,
+        description="Adam learning rate of a warm-started run (None: optim.lr). A fresh Adam moves every weight by "
+        "about lr per step whatever the gradient's scale: at 1e-3 a warm start leaves the optimum it starts from "
+        "(the lattice's overhang went from 3.2 % to 6.2 % in 300 steps); 1e-4 keeps it close")
+    overhang_slack: float = Field(
+        0.005, ge=0,
+        description="a warm-started run's constraint stop accepts the overhang area fraction it started from plus "
+        "this (besides target_overhang): it is there to clear the collisions, not to improve the overhang of a "
+        "run that stopped above the target")
+
+
 class OptimConfig(BaseModel):
     """Adam + ReduceLROnPlateau, budget and convergence test (SPEC step 8)."""
 
@@ -196,6 +233,7 @@ class OptimConfig(BaseModel):
         10, ge=1, description="steps between searches for L_GC's pairs near collision and constraint checks")
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")
     seed: int = Field(0, description="seed of torch, numpy and python RNGs")
+    refine: RefineConfig = Field(default_factory=RefineConfig, description="collision-driven refinement of L_GC")
 
 
 class InitConfig(BaseModel):

@@ -25,10 +25,18 @@ The pairs of pool points within the head's reach of each other are found once (a
 query); every ``optim.check_every`` steps they are tested against the current field in vectorised chunks and
 those near collision (within generous margins) form the active set. Between refreshes only the
 active set is evaluated, so a step costs a few vector operations over the active pairs.
+
+Refinement (:func:`refine_pool`): where the motion planner's exact check finds colliding waypoints that the
+pool missed (struts thinner than its spacing), points of a finer jittered lattice inside the solid are added
+around each colliding waypoint and each point of material it hit. They are printed points and obstacles like
+the base points, but they are paired only along *links*: the points near a colliding waypoint with those near
+the material it hit, and the points near each of the two among themselves (every pair within the head's
+reach among 20k added points would be 400 M pairs; the links keep the pairs the exact check named).
 """
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,10 +102,30 @@ class HeadShape:
 
 @dataclass
 class CollisionPool:
-    """Points (k,3) that stand for the solid in L_GC, and the spacing (mm) of the grid they come from."""
+    """Points (k,3) that stand for the solid in L_GC, and the spacing (mm) of the grid they come from.
+
+    A refined pool (:func:`refine_pool`) has its base points first (``n_base`` of them; None: all) and the
+    added points after them; ``links`` (l,2,3) are pairs of centres (a colliding waypoint and the material it
+    hit, or a centre and itself) whose neighbourhoods of radius ``link_radius`` (mm) are paired in L_GC;
+    ``fine_spacing`` (mm) is the spacing of the lattice the added points come from.
+    """
 
     points: np.ndarray
     spacing: float
+    n_base: int | None = None
+    links: np.ndarray | None = None
+    link_radius: float = 0.0
+    fine_spacing: float | None = None
+
+    def __post_init__(self) -> None:
+        self.points = np.asarray(self.points, np.float64).reshape(-1, 3)
+        self.n_base = len(self.points) if self.n_base is None else int(self.n_base)
+        self.links = np.zeros((0, 2, 3)) if self.links is None else np.asarray(self.links, np.float64).reshape(-1, 2, 3)
+
+    @property
+    def n_refined(self) -> int:
+        """Number of points added by refinement."""
+        return len(self.points) - int(self.n_base)
 
 
 def collision_pool(H, bounds: np.ndarray, volume: float, surface_points: np.ndarray, n_points: int,
@@ -118,6 +146,140 @@ def collision_pool(H, bounds: np.ndarray, volume: float, surface_points: np.ndar
     return CollisionPool(np.concatenate([inside, surf]), spacing)
 
 
+def refine_pool(pool: CollisionPool, hits: np.ndarray, witnesses: np.ndarray | None, H,
+                spacing: float | None = None, radius: float | None = None, max_points: int = 20_000,
+                seed: int = 0) -> CollisionPool:
+    """The pool with points of a finer lattice added inside the solid around collisions the exact check found.
+
+    Parameters
+    ----------
+    pool : the pool to refine (a base pool or an already refined one).
+    hits : (k, 3) float -- positions of colliding waypoints (the head's tip there hit something).
+    witnesses : (k, 3) float or None -- a point of the material each of them hit (rows with NaN, e.g. a
+        platform collision reported without one, and an empty array or None give no witness).
+    H : the implicit solid, ``H(points (n,3)) -> (n,)``, < 0 inside.
+    spacing : spacing (mm) of the fine lattice (default: the pool's earlier fine spacing, else a third of
+        its spacing).
+    radius : how far (mm) from each hit and witness points are added (default: the earlier link radius,
+        else two pool spacings).
+    max_points : at most this many points are added; the ones nearest to a hit or witness come first.
+    seed : seed of the lattice's jitter.
+
+    The lattice has nodes at integer multiples of ``spacing``, each jittered by up to 0.35 spacings by a
+    hash of its index and ``seed``: the same node always gives the same point, so refining twice around the
+    same collision adds it once (points within a quarter spacing of a pool point are left out). Nodes within
+    ``radius`` of a hit or witness, inside the solid (``H < 0``), are added in order of that distance. The
+    links (each hit with its witness, and each hit and witness with itself) are thinned to one per cell of
+    half the radius in the six coordinates of the two centres (the neighbouring waypoints of one colliding
+    stretch become one link), together with the pool's own (which come first).
+    """
+    hits = np.asarray(hits, np.float64).reshape(-1, 3)
+    wit = np.zeros((0, 3)) if witnesses is None else np.asarray(witnesses, np.float64).reshape(-1, 3)
+    if len(wit) and len(wit) != len(hits):
+        raise ValueError(f"witnesses ({len(wit)}) must be empty or one per hit ({len(hits)})")
+    fine = float(spacing or pool.fine_spacing or pool.spacing / 3.0)
+    r = float(radius or pool.link_radius or 2.0 * pool.spacing)
+    has_hit = np.isfinite(hits).all(axis=1)
+    has_wit = np.isfinite(wit).all(axis=1)
+    paired = has_hit & has_wit if len(wit) else np.zeros(len(hits), bool)
+    centres = np.concatenate([hits[has_hit], wit[has_wit]])
+    if not len(centres):
+        return CollisionPool(pool.points.copy(), pool.spacing, pool.n_base, pool.links.copy(), pool.link_radius,
+                             pool.fine_spacing)
+    links = np.concatenate([np.stack([hits[paired], wit[paired]], axis=1), np.stack([centres, centres], axis=1)])
+    links = _thin_links(np.concatenate([pool.links, links]), 0.5 * r)
+    added = _lattice_points_near(centres, pool.points, H, fine, r, max_points, seed)
+    return CollisionPool(np.concatenate([pool.points, added]), pool.spacing, pool.n_base, links, r, fine)
+
+
+def _thin_links(links: np.ndarray, cell: float) -> np.ndarray:
+    """One link (l,2,3) per cell of size ``cell`` in the six coordinates of its two centres, in input order."""
+    keys = np.floor(links.reshape(-1, 6) / cell).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return links[np.sort(first)]
+
+
+def _node_jitter(nodes: np.ndarray, seed: int) -> np.ndarray:
+    """A fixed pseudo-random offset in [-0.35, 0.35)^3 (in lattice units) per integer node (k,3): a splitmix64
+    hash of the node's index and the seed, so the same node always moves the same way."""
+    with np.errstate(over="ignore"):
+        h = np.full(len(nodes), np.uint64(seed % 2**64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(0x632BE59BD9B4E019))
+        out = np.empty((len(nodes), 3))
+        for axis in range(3):
+            h = (h ^ nodes[:, axis].astype(np.uint64)) * np.uint64(0xBF58476D1CE4E5B9)
+            h ^= h >> np.uint64(31)
+            h *= np.uint64(0x94D049BB133111EB)
+            h ^= h >> np.uint64(29)
+            out[:, axis] = (h >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+    return 0.7 * out - 0.35
+
+
+def _lattice_points_near(centres: np.ndarray, existing: np.ndarray, H, spacing: float, radius: float,
+                         max_points: int, seed: int, chunk: int = 50_000) -> np.ndarray:
+    """Jittered lattice points (a,3), a <= max_points, within ``radius`` of a centre (c,3), inside ``H < 0``
+    and farther than a quarter spacing from ``existing`` points, nearest to a centre first."""
+    # candidate nodes: the lattice in blocks about one radius wide around the centres' blocks
+    per_block = max(1, int(math.ceil(radius / spacing)))
+    blocks = np.unique(np.floor(centres / (per_block * spacing)).astype(np.int64), axis=0)
+    around = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    blocks = np.unique((blocks[:, None, :] + around[None]).reshape(-1, 3), axis=0)
+    inner = np.stack(np.meshgrid(*[np.arange(per_block)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    nodes = (blocks[:, None, :] * per_block + inner[None]).reshape(-1, 3)
+    points = (nodes + _node_jitter(nodes, seed)) * spacing
+    dist, _ = cKDTree(centres).query(points, distance_upper_bound=radius)
+    near = dist <= radius
+    if len(existing):
+        gap, _ = cKDTree(existing).query(points[near], distance_upper_bound=0.25 * spacing)
+        near[np.flatnonzero(near)[np.isfinite(gap)]] = False
+    candidates = np.flatnonzero(near)
+    candidates = candidates[np.argsort(dist[candidates], kind="stable")]
+    out: list[np.ndarray] = []
+    found = 0
+    for start in range(0, len(candidates), chunk):
+        if found >= max_points:
+            break
+        pts = points[candidates[start:start + chunk]]
+        pts = pts[np.asarray(H(pts)) < 0][:max_points - found]
+        out.append(pts)
+        found += len(pts)
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def link_pairs(points: np.ndarray, n_base: int, links: np.ndarray, radius: float, reach: float,
+               max_pairs: int) -> tuple[np.ndarray, int]:
+    """The ordered pairs of pool points (e,2) that a refined pool's links add, and how many links fit.
+
+    For each link (a, b) of ``links`` (l,2,3): every pool point within ``radius`` of a with every pool point
+    within ``radius`` of b, both ways, within ``reach`` of each other, distinct, and at least one of them an
+    added point (index >= ``n_base``: pairs of base points are the base query's). Links are taken in order
+    while the pairs so far (before removing duplicates) stay within ``max_pairs``.
+    """
+    empty = np.zeros((0, 2), np.int64)
+    if not len(links) or n_base >= len(points):
+        return empty, len(links)
+    tree = cKDTree(points)
+    near_a = tree.query_ball_point(links[:, 0], radius)
+    near_b = tree.query_ball_point(links[:, 1], radius)
+    out: list[np.ndarray] = []
+    total = used = 0
+    for ia, ib in zip(near_a, near_b):
+        ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
+        p, x = np.repeat(ia, len(ib)), np.tile(ib, len(ia))
+        keep = ((p >= n_base) | (x >= n_base)) & (p != x)
+        p, x = p[keep], x[keep]
+        keep = ((points[p] - points[x]) ** 2).sum(axis=1) <= reach * reach
+        pairs = np.stack([p[keep], x[keep]], axis=1)
+        if total + 2 * len(pairs) > max_pairs:
+            break
+        out += [pairs, pairs[:, ::-1]]
+        total += 2 * len(pairs)
+        used += 1
+    if not total:
+        return empty, used
+    code = np.unique(np.concatenate(out) @ np.array([len(points), 1], np.int64))
+    return np.stack([code // len(points), code % len(points)], axis=1), used
+
+
 class HeadCollision:
     """L_GC on a fixed pool of points located in the cage (see the module docstring).
 
@@ -125,14 +287,29 @@ class HeadCollision:
     cage_tets : (m,4); head; platform_z (None: no platform term); clearance and lift (the front
     margin ``m``) of the hinges, mm; length : normalisation (the pool spacing); margin : how far
     (mm) outside both hinges a pair may be and still be kept in the active set.
+    A refined pool (see :class:`CollisionPool`): n_base : the first n_base points are the base pool
+    (None: all), paired by the KD-tree query; links, link_radius : the added points are paired along
+    them (:func:`link_pairs`, at most max_link_pairs ordered pairs). The loss is normalised by n_base,
+    so refinement does not dilute the base pool's penalties.
     """
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, bary: np.ndarray, cage_tets: np.ndarray,
                  head: HeadShape, platform_z: float | None, clearance: float, lift: float,
-                 length: float, margin: float, device: torch.device, dtype: torch.dtype) -> None:
+                 length: float, margin: float, device: torch.device, dtype: torch.dtype, *,
+                 n_base: int | None = None, links: np.ndarray | None = None, link_radius: float = 0.0,
+                 max_link_pairs: int = 10_000_000) -> None:
         self.points = np.asarray(points, np.float64)
-        near = cKDTree(self.points).query_pairs(head.reach + clearance + lift + margin, output_type="ndarray")
-        self.near = torch.as_tensor(np.concatenate([near, near[:, ::-1]]), device=device)
+        self.n_base = len(self.points) if n_base is None else int(n_base)
+        reach = head.reach + clearance + lift + margin
+        near = cKDTree(self.points[:self.n_base]).query_pairs(reach, output_type="ndarray")
+        near = np.concatenate([near, near[:, ::-1]])
+        links = np.zeros((0, 2, 3)) if links is None else np.asarray(links, np.float64).reshape(-1, 2, 3)
+        extra, self.links_used = link_pairs(self.points, self.n_base, links, link_radius, reach, max_link_pairs)
+        self.n_links, self.n_link_pairs = len(links), len(extra)
+        if self.links_used < len(links):
+            warnings.warn(f"L_GC refinement: {len(links) - self.links_used} of {len(links)} links left out "
+                          f"(more than {max_link_pairs} pairs)", RuntimeWarning, stacklevel=2)
+        self.near = torch.as_tensor(np.concatenate([near, extra]), device=device)
         self.head, self.platform_z = head, platform_z
         self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
         self.platform_clearance = min(clearance, 0.5 * head.cone_length)
@@ -198,15 +375,15 @@ class HeadCollision:
         return pair, torch.relu(self.platform_clearance - clear) ** 2
 
     def loss(self, G: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
-        """L_GC = (sum of pair and platform penalties) / (pool size * spacing^2), unit-free."""
+        """L_GC = (sum of pair and platform penalties) / (base pool size * spacing^2), unit-free."""
         pair, plat = self.penalties(G, grad)
-        return (pair.sum() + plat.sum()) / (len(self.points) * self.length ** 2)
+        return (pair.sum() + plat.sum()) / (self.n_base * self.length ** 2)
 
     @torch.no_grad()
     def count(self, G: torch.Tensor, grad: torch.Tensor, inflate: float = 0.0) -> dict[str, int]:
         """Collisions over the whole pool, with the head grown by ``inflate`` (no order margin):
         colliding (p, x) pairs (head samples in earlier material), pool points whose head hits
-        something, and points whose head is below the platform."""
+        something (``refined_points_hit``: among the added ones), and points whose head is below the platform."""
         g, d, norm = self.values(G, grad)
         bad = self._select(g, d, norm, inflate, 0.0)
         hit = torch.zeros(len(self.points), dtype=torch.bool, device=self.device)
@@ -218,5 +395,6 @@ class HeadCollision:
             n_low = int(low.sum())
             hit |= low
         return {"colliding_pairs": n_pairs, "colliding_points": int(hit.sum()), "platform_points": n_low,
-                "pool_points": len(self.points)}
+                "pool_points": len(self.points), "refined_points": len(self.points) - self.n_base,
+                "refined_points_hit": int(hit[self.n_base:].sum())}
 

@@ -17,7 +17,7 @@ import random
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 import torch
@@ -28,13 +28,14 @@ from neuralslicer.neural import losses as L
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.constraints import corrected_evaluation, enforce_collision_constraint, violating_pairs
 from neuralslicer.model.solid import Solid
-from neuralslicer.neural.head_collision import CollisionPool, collision_pool
+from neuralslicer.neural.head_collision import CollisionPool, collision_pool, refine_pool
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, platform_vertices, user_field_on_cage
 from neuralslicer.neural.networks import DeformationFields
 from neuralslicer.neural.problem import FieldProblem
 from neuralslicer.samples import SurfaceSamples
 
 TERMS = ("sf", "sr", "po", "hs", "hq", "gc", "ca")
+WEIGHTS = "weights"  # the group of the network weights in FieldResult.to_arrays
 CHECKPOINT_VERSION = 2  # 2: tensors and plain values only (weights_only loading)
 ProgressFn = Callable[[int, dict], None]
 Scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau
@@ -48,7 +49,8 @@ class FieldResult:
     (= deformed z); lpd : (m, 3) unit LPD per cage tet; quaternions : (m, 4); scales : (m, 3);
     history : per-step arrays ('total', each term after the DC3 correction, 'corrections' made
     before the step, 'lr'); final : the loss
-    terms at the end; pretrain_history : MSE per pre-training step.
+    terms at the end; pretrain_history : MSE per pre-training step; weights : the final network
+    weights, one array per state-dict key (what a warm start reads back, see :meth:`weights_of`).
     """
 
     deformed_vertices: np.ndarray
@@ -64,9 +66,11 @@ class FieldResult:
     satisfaction: dict[str, float]
     pretrain_history: np.ndarray
     attrs: dict = field(default_factory=dict)
+    weights: dict[str, np.ndarray] = field(default_factory=dict)
 
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
-        """(arrays, json attrs) for a zarr group; history as 'history/<name>' arrays."""
+        """(arrays, json attrs) for a zarr group; history as 'history/<name>' arrays, the network weights as
+        'weights/<state-dict key>' arrays (plain float arrays)."""
         arrays = {
             "deformed_vertices": self.deformed_vertices,
             "G": self.G,
@@ -76,12 +80,37 @@ class FieldResult:
             "pretrain_history": self.pretrain_history,
         }
         arrays.update({f"history/{k}": v for k, v in self.history.items()})
+        arrays.update({f"{WEIGHTS}/{k}": v for k, v in self.weights.items()})
         attrs = dict(self.attrs)
         attrs.update(
             final=self.final, steps=self.steps, converged=self.converged,
             wall_time_s=self.wall_time_s, satisfaction=self.satisfaction,
         )
         return arrays, attrs
+
+    @staticmethod
+    def weights_of(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
+        """The network weights among a stored field's arrays (the 'weights/<key>' written by to_arrays), for
+        ``optimise_field(warm_start=...)``; None when the field has none (written by older code, or not neural)."""
+        prefix = WEIGHTS + "/"
+        out = {k[len(prefix):]: np.asarray(v) for k, v in arrays.items() if k.startswith(prefix)}
+        return out or None
+
+
+@dataclass
+class Refinement:
+    """What a refinement of L_GC's pool starts from (see ``optimise_for_solid``).
+
+    hits : (k, 3) positions of the waypoints the exact check found colliding; witnesses : (k, 3) a point of
+    the material each hit (``CollisionReport.locations``; NaN rows or an empty array: none), which the pairs
+    of the refined pool follow; weights : the earlier result's network weights (``FieldResult.weights`` or
+    ``FieldResult.weights_of(arrays)``) to start from, None to start afresh with the refined pool. A second
+    round passes the hits and witnesses of both rounds: the refined pool is rebuilt from them.
+    """
+
+    hits: np.ndarray
+    witnesses: np.ndarray | None = None
+    weights: dict[str, np.ndarray] | None = None
 
 
 @dataclass
@@ -172,6 +201,15 @@ def new_optimizer(fields: DeformationFields, config: NeuralConfig) -> tuple[torc
     oc = config.optim
     opt = torch.optim.Adam(fields.parameters(), lr=oc.lr, betas=tuple(oc.betas))
     return opt, Scheduler(opt, mode="min", factor=oc.plateau_factor, patience=oc.plateau_patience, min_lr=oc.min_lr)
+
+
+def load_weights(fields: DeformationFields, weights: Mapping[str, np.ndarray]) -> None:
+    """Set the networks' weights (and buffers) from plain arrays keyed by state-dict key (a warm start)."""
+    own = fields.state_dict()
+    if set(weights) != set(own) or any(tuple(np.shape(weights[k])) != tuple(own[k].shape) for k in own):
+        raise InputError("warm_start", "the weights do not fit the networks (another network preset or size, or "
+                         "per-element values for another cage): start without them")
+    fields.load_state_dict({k: torch.as_tensor(np.asarray(weights[k])) for k in own})
 
 
 def loss_of(problem: FieldProblem, fields: DeformationFields, weights: dict) -> float:
@@ -315,6 +353,7 @@ def optimise_field(
     save_checkpoint: Callable[[bytes, int], None] | None = None,
     load_checkpoint: Callable[[], bytes | None] | None = None,
     collision_pool: CollisionPool | None = None,
+    warm_start: Mapping[str, np.ndarray] | None = None,
 ) -> FieldResult:
     """Optimise the SIREN fields q, s so that G = deformed z meets the SF/SR/PO/GC objectives.
 
@@ -333,18 +372,25 @@ def optimise_field(
     load_checkpoint() -> bytes | None : a previous checkpoint to resume from.
     collision_pool : points inside the solid that stand for it in the global collision term L_GC
         (see :func:`neuralslicer.neural.head_collision.collision_pool`); needed when ``loss.w_gc > 0``.
+    warm_start : network weights to start from (``FieldResult.weights``, plain arrays per state-dict
+        key) instead of the identity and the initial guess, which is then not pre-trained. The constraint
+        stop of a warm-started run accepts the overhang it starts from plus ``optim.refine.overhang_slack``.
+        A checkpoint, when there is one, still wins.
     """
     config = config or NeuralConfig()
     t0 = time.perf_counter()
     with deterministic_algorithms():
         problem = FieldProblem(cage_vertices, cage_tets, samples, stress, config, platform_z, collision_pool)
         st = LoopState.start(problem)
+        if warm_start is not None:
+            load_weights(st.fields, warm_start)
+            problem.overhang_floor = problem.overhang(problem.field(st.fields)[1]) + config.optim.refine.overhang_slack
         blob = load_checkpoint() if load_checkpoint is not None else None
         if blob and not st.restore(blob, problem.device):
             warnings.warn("a checkpoint of an older format was ignored: the optimisation starts over", RuntimeWarning,
                           stacklevel=2)
             blob = None
-        if not blob:
+        if not blob and warm_start is None:
             target = initial_target(problem, user_field, user_field_points)
             if target is not None:
                 st.pretrain_history = pretrain(problem, st.fields, target, progress)
@@ -362,17 +408,44 @@ def optimise_field(
 
 def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
                        stress: StressSamples | None, objectives: list[str], config: NeuralConfig,
-                       **options: Any) -> FieldResult:
+                       refine: Refinement | None = None, **options: Any) -> FieldResult:
     """The field step: ``optimise_field`` for the objectives asked for, with L_GC's pool of points drawn
-    from the solid when gc is one of them; ``options`` are optimise_field's (initial guess, callbacks)."""
+    from the solid when gc is one of them; ``options`` are optimise_field's (initial guess, callbacks).
+
+    refine : collisions the exact check found in an earlier result's print: the pool is refined around them
+    (:func:`~neuralslicer.neural.head_collision.refine_pool` with ``optim.refine``'s spacing, radius and cap)
+    and, with the earlier weights, the run starts from them for at most ``optim.refine.steps`` steps (at
+    ``optim.refine.lr``); without weights it starts afresh on the refined pool. Needs the gc objective.
+    ``result.attrs["refinement"]`` records what was added.
+    """
     cfg = config.for_objectives(objectives)
     pool = None
     if cfg.loss.w_gc > 0:
         pool = collision_pool(solid.H, solid.bounds, solid.volume(), samples.points, cfg.loss.gc_points,
                               cfg.loss.gc_spacing, seed=cfg.optim.seed)
+    record = None
+    if refine is not None:
+        if pool is None:
+            raise InputError("objectives", "refining L_GC's pool needs the gc objective")
+        rc = cfg.optim.refine
+        base = len(pool.points)
+        pool = refine_pool(pool, refine.hits, refine.witnesses, solid.H, spacing=rc.spacing_factor * pool.spacing,
+                           radius=rc.radius_factor * pool.spacing, max_points=rc.max_points, seed=cfg.optim.seed)
+        if refine.weights is not None:
+            optim = cfg.optim.model_copy(update={"max_steps": rc.steps, "lr": rc.lr or cfg.optim.lr})
+            cfg = cfg.model_copy(update={"optim": optim})
+            options["warm_start"] = refine.weights
+        witnesses = np.zeros((0, 3)) if refine.witnesses is None else np.asarray(refine.witnesses, float).reshape(-1, 3)
+        record = {"hits": int(len(np.asarray(refine.hits).reshape(-1, 3))),
+                  "witnesses": int(np.isfinite(witnesses).all(axis=1).sum()),
+                  "base_points": base, "added_points": pool.n_refined, "links": int(len(pool.links)),
+                  "fine_spacing": pool.fine_spacing, "radius": pool.link_radius,
+                  "warm_start": refine.weights is not None}
     result = optimise_field(cage_vertices, cage_tets, samples, stress, config=cfg, platform_z=solid.platform_z,
                             collision_pool=pool, **options)
     result.attrs.update(objectives=list(objectives), kind="neural")
+    if record is not None:
+        result.attrs["refinement"] = record
     return result
 
 
@@ -532,13 +605,16 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
     head = problem.head_collisions(G)
     if head:
         final["gc_colliding_pairs"] = float(head["colliding_pairs"])
-        head.update(weight=problem.config.loss.w_gc, spacing=problem.head.length, clearance=problem.head.clearance)
+        head.update(weight=problem.config.loss.w_gc, spacing=problem.head.length, clearance=problem.head.clearance,
+                    links=problem.head.n_links, links_used=problem.head.links_used,
+                    link_pairs=problem.head.n_link_pairs)
     return FieldResult(
         deformed_vertices=V, G=G, lpd=lpd, quaternions=q.double().cpu().numpy(),
         scales=s.double().cpu().numpy(),
         history={k: np.asarray(v, dtype=np.float64) for k, v in st.history.items()},
         final=final, steps=st.step, converged=st.converged,
         wall_time_s=time.perf_counter() - t0, satisfaction=sat, pretrain_history=st.pretrain_history,
+        weights={k: v.detach().cpu().numpy().copy() for k, v in st.fields.state_dict().items()},
         attrs={"config": problem.config.model_dump(mode="json"), "seed": problem.config.optim.seed,
                "solver_backend": problem.arap.backend, "device": str(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,

@@ -80,6 +80,8 @@ class FieldProblem:
         self.head = self._head_collision(collision_pool)
         #: what the last constraint check measured (overhang, its target, pool points whose head hits), for progress
         self.last_check: dict[str, float] = {}
+        #: the constraint stop accepts at least this overhang fraction (a warm start's own, see optimise_field)
+        self.overhang_floor = 0.0
 
     def _head_collision(self, pool: CollisionPool | None) -> HeadCollision | None:
         """L_GC on the pool of solid points (None when its weight is 0); the pool is required then."""
@@ -92,7 +94,9 @@ class FieldProblem:
         head = HeadShape.from_nozzle(cl.head, cl.head_min_height)
         clearance = cl.gc_clearance if cl.gc_clearance is not None else min(1.5 * pool.spacing, cl.head.cone_length)
         return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
-                             cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype)
+                             cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype,
+                             n_base=pool.n_base, links=pool.links, link_radius=pool.link_radius,
+                             max_link_pairs=self.config.optim.refine.max_pairs)
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
         """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
@@ -181,19 +185,25 @@ class FieldProblem:
                                torch.from_numpy(g.pair_normals), self.phi)
         return e.numpy()
 
+    def overhang(self, grad: torch.Tensor) -> float:
+        """Overhang area fraction of B for the per-tet gradient of G (m,3)."""
+        d = unit(grad[self.b_tet_t]).double().cpu().numpy()
+        return overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d,
+                                      self.config.loss.alpha_deg)
+
     def constraints_met(self, fields: DeformationFields, step: int = 0) -> bool:
         """Support-free within ``optim.target_overhang`` (area fraction of B; ``target_overhang_late`` from
-        step ``late_after`` on) and no head collision (none in the pool with the head grown by
-        ``optim.stop_head_growth`` times its clearance); never with a strength objective, which has no satisfied state (always False when
-        target_overhang is 0 or SF is off). L_CA = 0 is the caller's part: the DC3 correction before each
-        evaluation reports it."""
+        step ``late_after`` on; at least ``overhang_floor``) and no head collision (none in the pool, refined
+        points included, with the head grown by ``optim.stop_head_growth`` times its clearance); never with a
+        strength objective, which has no satisfied state (always False when target_overhang is 0 or SF is
+        off). L_CA = 0 is the caller's part: the DC3 correction before each evaluation reports it."""
         cl, oc = self.config.loss, self.config.optim
         if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
             return False
         target = max(oc.target_overhang, oc.target_overhang_late) if step >= oc.late_after else oc.target_overhang
+        target = max(target, self.overhang_floor)
         G, grad = self.field(fields)
-        d = unit(grad[self.b_tet_t]).double().cpu().numpy()
-        over = overhang_area_fraction(self.b_normals, self.b_areas, np.zeros(len(d), bool), d, cl.alpha_deg)
+        over = self.overhang(grad)
         self.last_check = {"overhang": over, "overhang_target": target}
         if over > target:
             return False
