@@ -26,7 +26,8 @@ RESULTS = ROOT / "results" / "bench_ring_default.json"
 
 def one_run(tmp: Path) -> dict:
     """One default ring slice in a fresh store: its figures."""
-    env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect")}
+    # the cage cache off: every run meets a new fTetWild cage, as a new model would
+    env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect"), "NEURALSLICER_CACHE_DIR": "off"}
     out = tmp / "ring"
     load = os.getloadavg()[0]
     start = time.perf_counter()

@@ -64,17 +64,23 @@ def test_platform_collision_when_tilted_low():
     assert np.allclose(platform_clearance(tp.xyz, tp.axis, NOZZLE, 0.0), tp.xyz[:, 2] + low)
 
 
+def _assert_exact(tips: np.ndarray, axes: np.ndarray, pts: np.ndarray) -> None:
+    """head_collisions agrees with a brute-force test of every point in every head (some hit, some not), and
+    each reported location lies in its head."""
+    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
+    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
+    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
+        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+
+
 def test_head_check_is_exact_on_random_clouds():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-40, 40, size=(150, 3)) + [0, 0, 15]
     tips = rng.uniform(-5, 5, size=(60, 3))
     axes = rng.normal(size=(60, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
-    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
-    assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
-    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
-        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+    _assert_exact(tips, axes, pts)
     # the enclosing balls cover the head and the core balls lie inside it (dense samples of both)
     h = rng.uniform(0.4, 38.0, 20000)
     radial = rng.uniform(0, 1, 20000) ** 0.5 * np.where(h <= 8.0, h * np.tan(np.radians(30.0)), 15.0)
@@ -191,8 +197,4 @@ def test_poses_above_the_material_are_skipped_exactly():
     tips = np.c_[rng.uniform(-15, 15, size=(300, 2)), rng.uniform(-2, 12, 300)]
     axes = rng.normal(size=(300, 3)) * [0.4, 0.4, 1] + [0, 0, 1.5]
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
-    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
-    assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
-    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
-        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+    _assert_exact(tips, axes, pts)
