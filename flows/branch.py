@@ -89,7 +89,8 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
     field_attrs, cage_attrs = st.attrs(field_ref.path), st.attrs(cage.path)
     steps = int(field_attrs.get("steps", 0) or 0)
     # a field computed in this run that started from a checkpoint: the checkpoint it resumed from
-    field_state = dict(run.states).get("field", dict(run.states).get("field_s3"))
+    states = dict(run.states)
+    field_state = states.get("field", states.get("field_s3"))
     resumed_step = field_attrs.get("resumed_from_step") if field_state != "Cached" else None
     result = {
         "name": branch.name,

@@ -125,11 +125,22 @@ def default_user_field(model: str, options: StudyOptions, path: Path) -> Path:
     return make_user_field(solid.bounds, path)
 
 
+def _variant(config: SliceConfig, where: str, **changes: object) -> SliceConfig:
+    """The configuration with keys changed, nested ones spelt with ``__`` (``neural__network``), validated (an
+    error names ``where`` and the key)."""
+    data = config.model_dump()
+    for key, value in changes.items():
+        node = data
+        *path, last = key.split("__")
+        for k in path:
+            node = node[k]
+        node[last] = value
+    return SliceConfig.checked(data, where)
+
+
 def with_cage_elements(config: SliceConfig, n: int) -> SliceConfig:
     """The configuration with another cage element count, validated (its limits apply)."""
-    data = config.model_dump()
-    data["cage"]["n_elements"] = int(n)
-    return SliceConfig.checked(data, "--cage-elements")
+    return _variant(config, "--cage-elements", cage__n_elements=int(n))
 
 
 def cage_branches(model: str, options: StudyOptions, cage_elements: list[int]) -> list[Branch]:
@@ -160,17 +171,6 @@ def batch_branches(models: list[str], options: StudyOptions) -> list[Branch]:
                                out_dir=str(out / name), store=store, parameters={"model": str(m)}))
     return branches
 
-
-def _variant(config: SliceConfig, where: str, **changes: object) -> SliceConfig:
-    """The configuration with dotted keys changed (``neural.network``), validated."""
-    data = config.model_dump()
-    for key, value in changes.items():
-        node = data
-        *path, last = key.split("__")
-        for k in path:
-            node = node[k]
-        node[last] = value
-    return SliceConfig.checked(data, where)
 
 
 def _as_printed(config: SliceConfig) -> SliceConfig:

@@ -106,7 +106,7 @@ def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifa
     with Progress("s3", total=config.steps) as bar:
         result = optimise_s3(c.vertices, c.tets, read_samples(samples), read_stress(stress) if stress is not None else None,
                              objectives, config, read_solid(model).platform_z,
-                             progress=lambda step, info: bar.update(step + 1, total=float(info["total"])))
+                             progress=lambda step, info: bar.update(step, total=float(info["total"])))
     get_run_logger().info("s3: %d steps, %s", result.steps, result.summary().get("satisfaction"))
     arrays, attrs = result.to_arrays()
     return arrays, {**attrs, "objectives": sorted(set(objectives) & {"sf", "sr"}), "wall_time_s": result.wall_time_s}
