@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_neural import cached_ring_inputs  # noqa: E402
 
-from neuralslicer.baselines import S3Config, optimise_s3  # noqa: E402
+from neuralslicer.baselines.s3 import S3Config, optimise_s3  # noqa: E402
 from neuralslicer.metrics import overhang_area_fraction  # noqa: E402
 from neuralslicer.neural import NeuralConfig, optimise_field  # noqa: E402
 from neuralslicer.neural.field import CageGeometry  # noqa: E402

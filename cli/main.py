@@ -9,7 +9,8 @@ from typing import Any
 
 from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
 from cli.studies import add_compare_parser, add_study_parser
-from flows.settings import cache_settings, prefect_environment, with_api_retry
+from flows.local_api import LocalApi, api_serving, start_local_api
+from flows.settings import cache_settings, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.device import limit_threads
@@ -24,6 +25,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
     model = Path(args.model)
     if not model.exists():
         raise InputError(model, "no such file")
+    api = start_local_api()  # boots in the background while the model is read and checked
     spec = spec_for_file(model, args.up or "z", args.units or "mm")
     update = {k: v for k, v in (("up", args.up), ("units", args.units)) if v is not None and getattr(spec, k) != v}
     if update:
@@ -36,20 +38,24 @@ def cmd_slice(args: argparse.Namespace) -> int:
     solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
     needs_fea = config.verify or "sr" in config.objectives_for(spec)
     preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea)
-    return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args))
+    return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args, api))
 
 
-def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse.Namespace) -> int:
-    """Run the slicing flow and print its summary."""
-    prefect_environment()
+def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse.Namespace,
+               api: LocalApi | None) -> int:
+    """Run the slicing flow (against the local API once it is up) and print its summary."""
     limit_threads()  # a run pinned to fewer cores (taskset, a cgroup quota) uses only those
     from flows.slice import ensure_store, slice_flow
 
     store = ensure_store(store)
     user_field = args.init if args.init not in (None, "height", "heat") else None
     with cache_settings(store):
-        summary = with_api_retry(lambda: slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store,
-                                                    user_field=user_field))
+        def job() -> dict[str, Any]:
+            """The flow, run once the API answers."""
+            with api_serving(api):
+                return slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store, user_field=user_field)
+
+        summary = with_api_retry(job)
     print_summary(summary)
     return 0
 

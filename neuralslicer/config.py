@@ -7,7 +7,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, Field, ValidationError
 
-from neuralslicer.baselines.s3 import S3Config
+from neuralslicer.baselines.s3_config import S3Config
 from neuralslicer.cage import CageConfig
 from neuralslicer.errors import InputError
 from neuralslicer.layers import LayerConfig

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from neuralslicer.baselines import S3Config, optimise_s3
+from neuralslicer.baselines.s3 import S3Config, optimise_s3
 from neuralslicer.baselines.s3 import S3Objective
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.metrics import overhang_area_fraction

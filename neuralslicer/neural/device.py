@@ -4,14 +4,18 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
 
 
 def resolve_device(device: str = "auto") -> torch.device:
     """'auto' -> CUDA when available, else CPU; any other string is passed to torch.device."""
+    import torch
+
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
@@ -19,6 +23,8 @@ def resolve_device(device: str = "auto") -> torch.device:
 
 def resolve_dtype(name: str) -> torch.dtype:
     """'float32' | 'float64' -> torch dtype."""
+    import torch
+
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
@@ -37,6 +43,8 @@ def available_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
 
 def limit_threads() -> int:
     """Torch's intra-op threads set to the CPUs available (never more than torch chose); the count."""
+    import torch  # here, not at the top: the command line calls this before it needs torch
+
     n = min(torch.get_num_threads(), available_cpus())
     torch.set_num_threads(n)
     return n

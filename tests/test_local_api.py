@@ -1,0 +1,39 @@
+"""The local Prefect API server the command line starts in the background (flows/local_api.py)."""
+from __future__ import annotations
+
+import httpx
+import pytest
+from prefect import flow
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+from flows.local_api import LocalApi, start_local_api
+from flows.settings import API_START_FAILED
+
+
+@flow
+def answer() -> int:
+    """A flow that needs the API (it records its run there)."""
+    return 42
+
+
+def test_no_server_is_started_when_an_api_is_configured() -> None:
+    """With PREFECT_API_URL set (a Prefect server, the test harness) the command uses it and starts nothing."""
+    with temporary_settings(updates={PREFECT_API_URL: "http://127.0.0.1:9/api"}):
+        assert start_local_api() is None
+
+
+def test_a_flow_runs_against_the_local_api_and_a_failed_start_boots_afresh() -> None:
+    """A start that times out stops its process and says so in Prefect's words (the CLI retries on them); the
+    next wait boots a fresh server, a flow runs against it, and stop() ends the process."""
+    api = LocalApi()
+    first = api.process
+    with pytest.raises(RuntimeError, match=API_START_FAILED):
+        api.wait(0.0)
+    assert api.process is None and first is not None and first.poll() is not None
+    with api.serving():
+        assert httpx.get(f"{api.url}/health", timeout=5.0).status_code == 200
+        assert answer() == 42
+    process = api.process
+    assert process is not None and process.poll() is None
+    api.stop()
+    assert api.process is None and process.poll() is not None
