@@ -7,6 +7,9 @@ Cases (each run in its own process so that the peak resident memory is its own):
                         2 mm; max von Mises, |T|, and the anisotropic check with planar layers
   beam_1m               (with --large) the cantilever at 1M voxels
 
+The isotropic solves use the default solver (``auto``: matrix-free geometric multigrid + CG above
+``direct_max_dofs``); the anisotropic check of the ring uses the assembled AMG path.
+
 Usage: python benchmarks/bench_fea.py [--large] [--cases beam_10k,ring_100k] [--out DIR]
 Prints a table and writes benchmarks/results/bench_fea.json (and the figures of the ring).
 """
@@ -127,6 +130,7 @@ def main() -> None:
     if args.large and "beam_1m" not in names:
         names.append("beam_1m")
     rows = {}
+    load_before = os.getloadavg()                 # the machine may be shared: record its load
     for name in names:
         if name.startswith("ring") and not RING.is_file():
             print(f"skip {name}: {RING} not found")
@@ -151,7 +155,8 @@ def main() -> None:
               f"{r['assembly_s']:>10.2f} {r['solve_s']:>8.2f} {r['total_s']:>8.2f} "
               f"{r['peak_rss_mb']:>8.0f}  {extra}")
     meta = {"machine": platform.platform(), "python": platform.python_version(),
-            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "load_avg_before": list(load_before), "load_avg_after": list(os.getloadavg())}
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     old = json.loads(path.read_text()) if path.is_file() else {}

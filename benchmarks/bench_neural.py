@@ -4,6 +4,8 @@ optimisation step and peak memory for the default and `paper` networks, and the 
     python benchmarks/bench_neural.py solve            # sparse vs dense solve at 5k/20k/50k tets
     python benchmarks/bench_neural.py steps            # time/step + peak memory per size and network
     python benchmarks/bench_neural.py ring             # Ring, SF only: overhang vs planar, 3 initial guesses
+    python benchmarks/bench_neural.py bridge           # the paper's Bridge size: a real part's cage at 47k tets,
+                                                       # default objectives, per step and to convergence
     python benchmarks/bench_neural.py all
 
 Prints a table per part and merges the figures into benchmarks/results/bench_neural.json.
@@ -229,6 +231,53 @@ def bench_ring(kinds: list[str], cache: Path | None) -> list[dict]:
     return rows
 
 
+def step_scaling(rows: list[dict]) -> dict:
+    """Least-squares fit step_s = a + b * tets over the default network's rows: how linear the step is."""
+    pts = [(r["tets"], r["step_s"]) for r in rows if r["network"] == "default"]
+    if len(pts) < 2:
+        return {}
+    n, t = (np.array(v, dtype=float) for v in zip(*pts))
+    b, a = np.polyfit(n, t, 1)
+    pred = a + b * n
+    r2 = 1.0 - float(np.sum((t - pred) ** 2) / max(np.sum((t - t.mean()) ** 2), 1e-300))
+    return {"intercept_s": float(a), "s_per_tet": float(b), "r2": r2,
+            "us_per_tet": [float(1e6 * ti / ni) for ni, ti in zip(n, t)]}
+
+
+def bench_bridge(model: Path, up: str, n_elements: int) -> dict:
+    """A real part's cage at about ``n_elements`` tets (the paper's Bridge has 47k), the slice command's default
+    settings and objectives for it, optimised to convergence: steps, wall time, time per step, overhang."""
+    from neuralslicer.cage import make_cage
+    from neuralslicer.config import SliceConfig
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.neural.optimise import optimise_for_solid
+    from neuralslicer.samples import surface_samples
+
+    spec = spec_for_file(model, up=up)
+    config = SliceConfig().model_copy(update={"cage": SliceConfig().cage.model_copy(update={"n_elements": n_elements})})
+    solid = implicit_solid(spec)
+    samples = surface_samples(solid, config.samples.n_samples, k=config.samples.k, seed=config.samples.seed)
+    t = time.perf_counter()
+    cage = make_cage(solid, samples.points, config.cage)
+    cage_s = time.perf_counter() - t
+    objectives = config.objectives_for(spec)
+    load = os.getloadavg()[0]
+    r = optimise_for_solid(solid, cage.vertices, cage.tets, samples, None, objectives, config.neural)
+    s = r.satisfaction
+    row = {"model": model.name, "tets": int(len(cage.tets)), "vertices": int(len(cage.vertices)),
+           "objectives": ",".join(objectives), "cage_s": cage_s, "steps": r.steps, "converged": r.converged,
+           "wall_s": r.wall_time_s, "s_per_step": r.wall_time_s / max(r.steps, 1),
+           "overhang": s["overhang_area_fraction"], "planar_overhang": s["planar_overhang_area_fraction"],
+           "load_at_start": load, "load_at_end": os.getloadavg()[0],
+           "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    print(f"bridge size ({model.name}): {row['tets']} tets, {r.steps} steps "
+          f"({'converged' if r.converged else 'budget'}), {r.wall_time_s:.1f} s, {1e3 * row['s_per_step']:.0f} ms/step, "
+          f"overhang {100 * row['overhang']:.2f} % (planar {100 * row['planar_overhang']:.2f} %), load {load:.1f}",
+          flush=True)
+    return row
+
+
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
     argv = sys.argv[1:] if argv is None else argv
@@ -237,7 +286,11 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(_step_case(size, network, steps, device)))
         return
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("part", choices=["solve", "steps", "ring", "all"])
+    p.add_argument("part", choices=["solve", "steps", "ring", "bridge", "all"])
+    p.add_argument("--bridge-model", default=str(Path(os.environ.get("NEURALSLICER_DATA", "/work/shared/data"))
+                                                   / "topopt_new4.tet"))
+    p.add_argument("--bridge-up", default="y")
+    p.add_argument("--bridge-elements", type=int, default=47_000)
     p.add_argument("--sizes", default="5k,20k,50k")
     p.add_argument("--networks", default="default,paper")
     p.add_argument("--steps", type=int, default=10)
@@ -251,10 +304,19 @@ def main(argv: list[str] | None = None) -> None:
         _merge("solve", bench_solve(sizes))
     if a.part in ("steps", "all"):
         rows = bench_steps(sizes, a.networks.split(","), a.steps, a.device)
+        fit = step_scaling(rows)
+        if fit:
+            print(f"default network: step = {1e3 * fit['intercept_s']:.1f} ms + {1e6 * fit['s_per_tet']:.2f} us/tet "
+                  f"(R^2 {fit['r2']:.4f})")
         if not a.no_save:
             _merge(f"steps_{rows[0]['device'] if rows else a.device}", rows)
+            _merge(f"steps_scaling_{rows[0]['device'] if rows else a.device}", fit)
     if a.part in ("ring", "all"):
         _merge("ring", bench_ring(a.inits.split(","), Path(a.ring_cache) if a.ring_cache else None))
+    if a.part in ("bridge", "all"):
+        row = bench_bridge(Path(a.bridge_model), a.bridge_up, a.bridge_elements)
+        if not a.no_save:
+            _merge("bridge", row)
 
 
 if __name__ == "__main__":

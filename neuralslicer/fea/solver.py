@@ -20,7 +20,8 @@ from neuralslicer.fea.element import (
     voigt_to_tensor,
 )
 from neuralslicer.fea.grid import SolidLike, VoxelGrid, voxelize
-from neuralslicer.fea.spec import FEASpec, Load, Support, _Region
+from neuralslicer.fea.multigrid import Multigrid
+from neuralslicer.fea.spec import FEASpec, Load, SolverOptions, Support, _Region
 
 SCHEMA_VERSION = 1
 _AXES = {"x": 0, "y": 1, "z": 2}
@@ -214,15 +215,36 @@ def held_voxels(grid: VoxelGrid, fixed: np.ndarray, force: np.ndarray) -> np.nda
 
 
 # --------------------------------------------------------------------------- solve
+def resolve_method(opts: SolverOptions, n_dofs: int, isotropic: bool) -> str:
+    """The solver of ``opts.method`` for n_dofs: auto is direct when small, else mg (isotropic,
+    matrix-free geometric multigrid) or amg (per-voxel material, assembled); mg needs equal
+    voxels, so a per-voxel material takes auto's choice among direct and amg instead."""
+    if opts.method not in ("auto", "mg"):
+        return opts.method
+    if opts.method == "mg" and isotropic:
+        return "mg"
+    if n_dofs <= opts.direct_max_dofs:
+        return "direct"
+    return "mg" if isotropic else "amg"
+
+
+def _checked(u: np.ndarray, residual: np.ndarray, f: np.ndarray, method: str, rtol: float
+             ) -> float:
+    """Relative residual ||K u - f|| / ||f||; an error when not finite or above the tolerance."""
+    r = float(np.linalg.norm(residual)) / (float(np.linalg.norm(f)) or 1.0)
+    if not np.all(np.isfinite(u)) or not r <= max(1e-4, 100 * rtol):
+        raise NeuralSlicerError(f"FEA solve ({method}) did not converge: relative residual {r:.3g}")
+    return r
+
+
 def solve_system(K: sp.bsr_matrix, f: np.ndarray, points: np.ndarray, spec: FEASpec
                  ) -> tuple[np.ndarray, str, int, float]:
     """Solve K u = f: sparse LU when small, else CG preconditioned by smoothed-aggregation AMG."""
     opts = spec.solver
     n = K.shape[0]
     method = opts.method
-    if method == "auto":
+    if method in ("auto", "mg"):             # an assembled matrix: mg is for solve_multigrid
         method = "direct" if n <= opts.direct_max_dofs else "amg"
-    fn = float(np.linalg.norm(f)) or 1.0
     if method == "direct":
         try:
             lu = spla.splu(K.tocsc(), permc_spec="COLAMD")
@@ -239,10 +261,15 @@ def solve_system(K: sp.bsr_matrix, f: np.ndarray, points: np.ndarray, spec: FEAS
         res: list[float] = []
         u = ml.solve(f, tol=opts.rtol, accel="cg", maxiter=opts.maxiter, residuals=res)
         iters = len(res) - 1
-    r = float(np.linalg.norm(K @ u - f)) / fn
-    if not np.all(np.isfinite(u)) or r > max(1e-4, 100 * opts.rtol):
-        raise NeuralSlicerError(f"FEA solve ({method}) did not converge: relative residual {r:.3g}")
-    return u, method, iters, r
+    return u, method, iters, _checked(u, K @ u - f, f, method, opts.rtol)
+
+
+def solve_multigrid(mg: Multigrid, f: np.ndarray, spec: FEASpec
+                    ) -> tuple[np.ndarray, str, int, float]:
+    """Solve A u = f with CG preconditioned by the geometric multigrid V-cycle ``mg``."""
+    opts = spec.solver
+    u, iters = mg.solve(f, opts.rtol, opts.maxiter)
+    return u, "mg", iters, _checked(u, mg.A @ u - f, f, "mg", opts.rtol)
 
 
 # --------------------------------------------------------------------------- results
@@ -333,24 +360,42 @@ def solve_on_grid(grid: VoxelGrid, spec: FEASpec, platform_z: float,
         fixed = fixed_dofs(grid, spec.supports, platform_z, strict=False)
         f = load_vector(grid, spec.loads, platform_z, strict=False)
     h = grid.spacing
+    method = resolve_method(spec.solver, 3 * grid.n_nodes, isotropic=D is None)
+    f[fixed] = 0.0
     if D is None:
         Diso = isotropic_D(spec.material.youngs_modulus_mpa, spec.material.poisson_ratio)
         Ke = element_stiffness(Diso, h)
-        S, has = assemble_stencil(grid, lambda a, b: Ke[3 * a:3 * a + 3, 3 * b:3 * b + 3])
-    else:
-        Q = stiffness_basis()
-        Dflat = D.reshape(-1, 36)
+    u = None
+    fallback = None
+    if method == "mg":
+        try:
+            mg = Multigrid(grid, Ke, fixed)
+            n_dofs, nnz = mg.A.n, None
+            t1 = time.perf_counter()
+            u, method, iters, res = solve_multigrid(mg, f, spec)
+        except (RuntimeError, NeuralSlicerError) as exc:     # singular coarse level, no convergence
+            if spec.solver.method == "mg":
+                raise
+            u, fallback = None, f"mg: {exc}"          # auto: the assembled AMG solve instead, recorded
+        mg = None
+    if u is None:
+        if D is None:
+            S, has = assemble_stencil(grid, lambda a, b: Ke[3 * a:3 * a + 3, 3 * b:3 * b + 3])
+        else:
+            Q = stiffness_basis()
+            Dflat = D.reshape(-1, 36)
 
-        def block(a: int, b: int) -> np.ndarray:
-            q = Q[:, :, 3 * a:3 * a + 3, 3 * b:3 * b + 3].reshape(36, 9)
-            return (h * (Dflat @ q)).reshape(-1, 3, 3)
-        S, has = assemble_stencil(grid, block)
-    nbr = neighbour_table(grid)
-    K = stencil_to_bsr(S, has, nbr, fixed)
-    del S, has, nbr
-    f[fixed] = 0.0
-    t1 = time.perf_counter()
-    u, method, iters, res = solve_system(K, f, grid.nodes, spec)
+            def block(a: int, b: int) -> np.ndarray:
+                q = Q[:, :, 3 * a:3 * a + 3, 3 * b:3 * b + 3].reshape(36, 9)
+                return (h * (Dflat @ q)).reshape(-1, 3, 3)
+            S, has = assemble_stencil(grid, block)
+        nbr = neighbour_table(grid)
+        K = stencil_to_bsr(S, has, nbr, fixed)
+        del S, has, nbr
+        n_dofs, nnz = int(K.shape[0]), int(K.nnz)
+        t1 = time.perf_counter()
+        u, method, iters, res = solve_system(K, f, grid.nodes, spec)
+        del K
     t2 = time.perf_counter()
     u = u.reshape(-1, 3)
     B0 = strain_matrix(np.zeros(3), h)                                     # (6, 24) at centre
@@ -364,9 +409,11 @@ def solve_on_grid(grid: VoxelGrid, spec: FEASpec, platform_z: float,
     w, v, tau, smax = principal(stress)
     info = {"n_voxels": grid.n_voxels, "n_nodes": grid.n_nodes, "dropped_voxels": dropped,
             "solver": method, "iterations": iters, "relative_residual": res,
-            "n_dofs": int(K.shape[0]), "n_fixed_dofs": int(fixed.sum()), "nnz": int(K.nnz),
+            "n_dofs": n_dofs, "n_fixed_dofs": int(fixed.sum()), "nnz": nnz,
             "assembly_s": t1 - t0, "solve_s": t2 - t1,
             "total_force_n": f.reshape(-1, 3).sum(axis=0).tolist()}
+    if fallback is not None:
+        info["solver_fallback"] = fallback
     return FEAResult(grid, u, voigt_to_tensor(eps_v, engineering_shear=True), stress, w, v, tau,
                      smax, von_mises(stress), info)
 

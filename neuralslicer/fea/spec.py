@@ -133,10 +133,11 @@ class Load(_Region):
 
 
 class SolverOptions(_Strict):
-    """Linear solver choice: a direct sparse factorisation when small, else AMG-preconditioned CG."""
+    """Linear solver choice: a direct sparse factorisation when small, else preconditioned CG."""
 
-    method: Literal["auto", "direct", "amg"] = Field(
-        "auto", description="auto: direct up to direct_max_dofs DOFs, else amg.")
+    method: Literal["auto", "direct", "amg", "mg"] = Field(
+        "auto", description="auto: direct up to direct_max_dofs DOFs, else mg (matrix-free "
+        "geometric multigrid, isotropic material) or amg (assembled, per-voxel material).")
     direct_max_dofs: int = Field(
         3_000, ge=0, description="Largest system (DOFs) solved by SuperLU; its 3-D fill-in "
         "grows fast: on a compact part AMG-CG is already 10x quicker at 9k DOFs.")
