@@ -274,6 +274,7 @@ class Multigrid:
 
     def __init__(self, grid: VoxelGrid, Ke: np.ndarray, fixed: np.ndarray, *,
                  coarse_dofs: int = 12_000, degree: int = 3, dtype: type = np.float32) -> None:
+        """Coarsen until ``coarse_dofs`` or less, then factor the coarsest level once (SuperLU)."""
         dofs = element_dofs(grid.elements)
         free = ~fixed
         types, table = fine_types(dofs, Ke, fixed)
