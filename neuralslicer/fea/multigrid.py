@@ -61,6 +61,7 @@ class ElementOperator:
 
     def __init__(self, dofs: np.ndarray, types: np.ndarray, table: np.ndarray, mask: np.ndarray,
                  scale: float) -> None:
+        """Group the elements by type (large groups first) and build the scatter matrix."""
         self.dtype = np.dtype(np.float64)
         order = np.argsort(types, kind="stable")
         counts = np.bincount(types, minlength=table.shape[0])
