@@ -82,7 +82,8 @@ class LocalApi:
                     self._log.seek(0)
                     err = self._log.read().decode(errors="replace")[-2000:]
                     self.stop()
-                    raise RuntimeError(f"Prefect's local API server exited with code {status}: {err}")
+                    # Prefect's words, as its own server's failure: the command retries once, then says what to do
+                    raise RuntimeError(f"{API_START_FAILED}: the server process exited with code {status}: {err}")
                 try:
                     if client.get(f"{self.url}/health", timeout=5.0).status_code == 200:
                         return

@@ -1,6 +1,9 @@
 """The local Prefect API server the command line starts in the background (flows/local_api.py)."""
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import httpx
 import pytest
 from prefect import flow
@@ -37,3 +40,22 @@ def test_a_flow_runs_against_the_local_api_and_a_failed_start_boots_afresh() -> 
     assert process is not None and process.poll() is None
     api.stop()
     assert api.process is None and process.poll() is not None
+
+
+class CrashingApi(LocalApi):
+    """A server process that exits at once with an error."""
+
+    def _launch(self) -> None:
+        """Start a process that writes an error and exits with status 1."""
+        self.process = subprocess.Popen([sys.executable, "-c", "import sys; sys.exit('no database')"],
+                                        stdout=subprocess.DEVNULL, stderr=self._log)
+
+
+def test_a_server_that_exits_fails_in_prefects_words_with_its_error() -> None:
+    """A crashed server is reported like a start-up failure (so the command retries, then prints one line), with
+    the server's own last words."""
+    api = CrashingApi()
+    with pytest.raises(RuntimeError, match=API_START_FAILED) as failure:
+        api.wait(60.0)
+    assert "exited with code 1" in str(failure.value) and "no database" in str(failure.value)
+    assert api.process is None
