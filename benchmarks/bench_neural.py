@@ -255,7 +255,8 @@ def bench_bridge(model: Path, up: str, n_elements: int) -> dict:
     from neuralslicer.samples import surface_samples
 
     spec = spec_for_file(model, up=up)
-    config = SliceConfig().model_copy(update={"cage": SliceConfig().cage.model_copy(update={"n_elements": n_elements})})
+    defaults = SliceConfig()
+    config = defaults.model_copy(update={"cage": defaults.cage.model_copy(update={"n_elements": n_elements})})
     solid = implicit_solid(spec)
     samples = surface_samples(solid, config.samples.n_samples, k=config.samples.k, seed=config.samples.seed)
     t = time.perf_counter()
