@@ -144,6 +144,39 @@ def test_a_colliding_travel_is_lifted_over_the_tower():
     assert np.array_equal(out.xyz[on], tp.xyz[tp.path >= 0])
 
 
+def test_a_travel_no_lift_clears_goes_by_the_clearance_plane():
+    """With only a 2 mm lift on offer (too low for the 5 mm tower), the travel goes up to the plane above all
+    earlier material and across it; the exact check finds the new program clear, the printing moves are untouched."""
+    from neuralslicer.motion.travel import raise_travels
+
+    tp = toolpaths(_tower_and_two_pads(), platform_z=0.0)
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    out, left, summary = raise_travels(tp, rep, NOZZLE, platform_z=0.0, min_height=0.5, lifts=(2.0,))
+    assert summary["n_travels_by_clearance_plane"] == rep.count == summary["n_travels_lifted"]
+    assert summary["n_travels_unresolved"] == 0 and left.count == 0
+    assert len(out) == len(tp) + 4 * rep.count                                  # up, up to the plane, across, down
+    assert check_collisions(out, NOZZLE, platform_z=0.0).count == 0
+    across = (out.layer == 10) & (out.path == -1) & (out.xyz[:, 2] > 5.0) & (np.abs(out.xyz[:, 0]) > 7)
+    assert across.sum() == 2 * rep.count and np.allclose(out.xyz[across, 2], 5.0 + 2 * 0.5 + 1.0)
+    assert np.allclose(out.axis[across], [0.0, 0.0, 1.0])
+    assert np.array_equal(out.xyz[out.path >= 0], tp.xyz[tp.path >= 0])
+
+
+def test_lifted_travels_shift_the_other_collisions_by_their_detours():
+    """A part collision after two lifted travels keeps pointing at its own waypoint (detours of 2 and 4 points)."""
+    from neuralslicer.motion.collision import PART, TRAVEL_PATH, CollisionReport
+    from neuralslicer.motion.travel import raise_travels
+
+    tp = toolpaths(_tower_and_two_pads(), platform_z=0.0)
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    last = len(tp) - 1
+    fake = CollisionReport(np.r_[rep.indices, last], np.vstack([rep.locations, tp.xyz[last]]),
+                           np.r_[rep.kind, PART].astype(np.int8))
+    out, left, _ = raise_travels(tp, fake, NOZZLE, platform_z=0.0, min_height=0.5, lifts=(2.0, 64.0))
+    assert list(left.kind) == [PART] and TRAVEL_PATH not in left.kind
+    assert np.array_equal(out.xyz[left.indices[0]], tp.xyz[last])
+
+
 def test_cell_classified_holder_test_is_exact_on_a_dense_cloud():
     """Thousands of material points in few cells (whole cells inside the holder, outside, on its boundary): the
     hits and their witnesses agree with the brute-force membership test at every pose."""

@@ -8,12 +8,14 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from conftest import Planted
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.neural.device import resolve_device
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, user_field_on_cage
 from neuralslicer.neural.synthetic import sphere_samples
+from neuralslicer.samples import SurfaceSamples
 from neuralslicer.tetmesh import box_tet_grid
 
 
@@ -265,6 +267,70 @@ def test_the_late_overhang_target_applies_from_late_after(problem):
     assert not met(0, 2 * planar) and not met(99, 2 * planar)
     assert met(100, 2 * planar) and met(5000, 2 * planar)
     assert not met(100, 0.5 * planar) and not met(100, 0.0)
+
+
+def _stall_cfg(**optim) -> NeuralConfig:
+    """Constraint stop out of reach (overhang 1e-9), loss stall and loss target off: only the progress test can stop."""
+    return _cfg(**{"target_overhang": 1e-9, "target_overhang_late": 1e-9, "target_loss": 0.0, "late_after": 100,
+                   "progress_window": 50, "progress_every": 10, **optim})
+
+
+def test_the_progress_stall_test_stops_a_run_whose_overhang_no_longer_falls(problem):
+    """Weights that barely move (lr 1e-9): the overhang is the same at every measurement, so the run stops at
+    late_after, the first step the test may fire; with the test off it runs its budget. A killed run resumes to
+    the same stop."""
+    res = _run(problem, _stall_cfg(max_steps=400, lr=1e-9))
+    assert res.steps == 100 and res.attrs["stalled_progress"] and res.converged      # stopped by a test
+    assert [r["step"] for r in res.attrs["progress"]] == list(range(50, 101, 10))
+    assert _run(problem, _stall_cfg(max_steps=150, lr=1e-9, progress_window=0)).steps == 150
+    store: dict[int, bytes] = {}
+
+    def save_then_die(blob: bytes, step: int) -> None:
+        store[step] = blob
+        if step == 75:
+            raise Killed
+
+    with pytest.raises(Killed):
+        _run(problem, _stall_cfg(max_steps=400, lr=1e-9, checkpoint_every=75), save_checkpoint=save_then_die)
+    resumed = _run(problem, _stall_cfg(max_steps=400, lr=1e-9, checkpoint_every=75), load_checkpoint=lambda: store[75])
+    assert resumed.steps == 100 and resumed.attrs["progress"] == res.attrs["progress"]
+
+
+@pytest.fixture(scope="module")
+def unsupportable():
+    """The sphere's samples B plus 20 points that each carry six samples with normals +-x, +-y, +-z: at
+    alpha = 20 deg no print direction supports all six (|d_x|, |d_y|, |d_z| <= sin 20 deg has no unit d), so
+    the overhang falls from planar layers' and levels off above zero."""
+    V, T = box_tet_grid((4, 4, 4), np.zeros(3), np.full(3, 10.0))
+    s = sphere_samples()
+    rng = np.random.default_rng(0)
+    centres = np.repeat(rng.uniform(3, 7, size=(20, 3)), 6, axis=0) + 0.01 * rng.normal(size=(120, 3))
+    pts = np.vstack([s.points, centres])
+    nrm = np.vstack([s.normals, np.tile(np.vstack([np.eye(3), -np.eye(3)]), (20, 1))])
+    knn = cKDTree(pts).query(pts, k=11)[1][:, 1:]
+    samples = SurfaceSamples(pts, nrm, np.full(len(pts), s.areas.mean()), knn, np.r_[s.on_platform, np.zeros(120, bool)])
+    return V, T, samples
+
+
+def test_the_progress_stall_test_fires_only_without_gain_over_its_window(unsupportable):
+    """On a run whose overhang falls, then levels off, every measurement from late_after on is judged again
+    from the recorded progress: the run goes on while the window's best overhang beats the best before it by
+    5 %, and stops at the first measurement where it does not."""
+    cfg = _stall_cfg(max_steps=1500, lr=1e-4).model_dump()
+    cfg["loss"]["alpha_deg"] = 20.0
+    res = _run(unsupportable, NeuralConfig.model_validate(cfg))
+    rec = res.attrs["progress"]
+    assert rec[0]["overhang"] > 1.5 * rec[-1]["overhang"] > 0           # progress on the way, then a floor
+    assert 100 < res.steps < 1500 and res.attrs["stalled_progress"]
+
+    def stalls(step: int) -> bool:
+        before = [r["overhang"] for r in rec if r["step"] <= step - 50]
+        within = [r["overhang"] for r in rec if step - 50 < r["step"] <= step]
+        return not min(within) < 0.95 * min(before)
+
+    judged = [r["step"] for r in rec if r["step"] >= 100]
+    assert not any(stalls(k) for k in judged[:-1])
+    assert stalls(judged[-1]) == res.attrs["stalled_progress"] == (res.steps < 1500)
 
 
 def test_a_planted_checkpoint_cannot_run_code(problem, tmp_path):

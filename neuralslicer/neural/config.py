@@ -229,6 +229,16 @@ class OptimConfig(BaseModel):
         description="from step late_after on, the constraint stop accepts this overhang fraction instead (still "
         "with no head collision and L_CA = 0): a bound on runs whose overhang creeps down slowly (0: off)")
     late_after: int = Field(500, ge=0, description="step from which target_overhang_late applies")
+    progress_window: int = Field(
+        300, ge=0,
+        description="from step late_after on, stop once the best overhang fraction of B over the last this many "
+        "steps is within progress_rtol of the best before them and the pool's head hits have not dropped below "
+        "their best before them either (0: off; not with a strength objective). The loss-based stall test never "
+        "fires while L_GC keeps trading penalties (the lattice ran its whole budget at 3.4 % overhang); this one "
+        "watches what the stop is for")
+    progress_rtol: float = Field(0.05, ge=0, lt=1, description="relative overhang improvement the progress "
+                                 "stall test asks for over progress_window steps")
+    progress_every: int = Field(50, ge=1, description="steps between the progress stall test's measurements")
     check_every: int = Field(
         10, ge=1, description="steps between searches for L_GC's pairs near collision and constraint checks")
     checkpoint_every: int = Field(50, ge=1, description="steps between checkpoints")

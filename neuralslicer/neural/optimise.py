@@ -136,6 +136,10 @@ class LoopState:
     final_corrections: int = 0
     pretrain_history: np.ndarray = field(default_factory=lambda: np.zeros(0))
     grad_scale: float | None = None
+    #: (step, overhang fraction of B, pool points whose head hits) every optim.progress_every steps near the
+    #: progress stall test's window; stalled: that test stopped the run
+    progress: list[tuple[int, float, int]] = field(default_factory=list)
+    stalled: bool = False
 
     @classmethod
     def start(cls, problem: FieldProblem) -> LoopState:
@@ -155,6 +159,7 @@ class LoopState:
             "trend": self.trend, "pretrain_history": torch.from_numpy(np.asarray(self.pretrain_history, np.float64)),
             "rng": _rng_state(),
             "grad_scale": self.grad_scale,
+            "progress": [list(r) for r in self.progress], "stalled": self.stalled,
             "seed": config.optim.seed, "config": config.model_dump(mode="json"),
         }, buf)
         return buf.getvalue()
@@ -179,6 +184,8 @@ class LoopState:
         self.history = {k: list(v) for k, v in state["history"].items()}
         self.pretrain_history = state["pretrain_history"].cpu().numpy()
         self.grad_scale = state.get("grad_scale")
+        self.progress = [(int(r[0]), float(r[1]), int(r[2])) for r in state.get("progress", [])]
+        self.stalled = bool(state.get("stalled", False))
         _set_rng_state(state["rng"])
         return True
 
@@ -492,8 +499,31 @@ def iterate(problem: FieldProblem, st: LoopState, first: bool) -> int | None:
     st.history["corrections"].append(float(n_corr))
     st.history["lr"].append(st.lr)
     st.best.append(min(st.best[-1], tv) if st.best else tv)
-    st.converged = converged(problem, st)
+    st.converged = converged(problem, st) or stalled_progress(problem, st)
     return n_viol
+
+
+def stalled_progress(problem: FieldProblem, st: LoopState) -> bool:
+    """The progress stall test (``optim.progress_window``): from ``late_after`` on, True once neither the
+    overhang of B nor the pool's head hits have improved over the window (measured every progress_every
+    steps, from a window before late_after)."""
+    oc = problem.config.optim
+    w = oc.progress_window
+    if not problem.watches_progress() or st.step % oc.progress_every or st.step < oc.late_after - w:
+        return False
+    over, hits = problem.progress(st.fields)
+    st.progress.append((st.step, over, hits))
+    if st.step < oc.late_after:
+        return False
+    before = [r for r in st.progress if r[0] <= st.step - w]
+    within = [r for r in st.progress if r[0] > st.step - w]
+    if not before:
+        return False
+    best_over, best_hits = min(r[1] for r in before), min(r[2] for r in before)
+    gained = min(r[1] for r in within) < (1.0 - oc.progress_rtol) * best_over
+    cleared = min(r[2] for r in within) < best_hits
+    st.stalled = not gained and not cleared
+    return st.stalled
 
 
 def take_step(st: LoopState, oc, total: torch.Tensor, tv: float) -> bool:
@@ -619,6 +649,7 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
                "solver_backend": problem.arap.backend, "device": str(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,
                "head_collision": head,
-               "rollbacks": st.rollbacks,
+               "rollbacks": st.rollbacks, "stalled_progress": st.stalled,
+               "progress": [{"step": r[0], "overhang": r[1], "head_hits": r[2]} for r in st.progress],
                "best_step": None if st.best_state is None else int(st.best_state["step"]) + 1},
     )

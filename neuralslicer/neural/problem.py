@@ -213,6 +213,20 @@ class FieldProblem:
         self.last_check["head_hits"] = hits
         return not hits
 
+    def watches_progress(self) -> bool:
+        """Whether the progress stall test applies: the constraint stop can fire (SF on, no strength objective)."""
+        cl, oc = self.config.loss, self.config.optim
+        return oc.progress_window > 0 and oc.target_overhang > 0 and cl.w_sf > 0 and cl.w_sr <= 0 and len(self.b_tet) > 0
+
+    def progress(self, fields: DeformationFields) -> tuple[float, int]:
+        """(overhang area fraction of B, pool points whose head hits, grown as the constraint stop's) now."""
+        G, grad = self.field(fields)
+        hits = 0
+        if self.head is not None:
+            growth = self.config.optim.stop_head_growth * self.head.clearance
+            hits = int(self.head.count(G, grad, growth)["colliding_points"])
+        return self.overhang(grad), hits
+
     def planar_lpd_satisfaction(self) -> dict[str, float]:
         """SF/SR satisfaction of planar layers (d = +z)."""
         m = len(self.geometry.tets)
