@@ -169,7 +169,8 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
         "sf.overhang_area_fraction_planar": overhang_area_fraction(B.normals, B.areas, B.on_platform, planar,
                                                                    alpha_deg),
         "field.kind": fa.get("kind", "neural"), "field.objectives": ",".join(fa.get("objectives", [])),
-        "field.steps": fa.get("steps", 0), "field.blend_planar": fa.get("blend_planar", 0.0),
+        "field.steps": fa.get("steps", 0), "field.stop": fa.get("stop", ""),
+        "field.blend_planar": fa.get("blend_planar", 0.0),
     }
     metrics.update(heldout_overhang(run, alpha_deg))
     metrics.update({f"layers.{k}": v for k, v in run.layers.report.items()})

@@ -52,7 +52,9 @@ def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stre
     if oc.target_overhang > 0 and "sr" not in objectives:
         say(f"optimise: stops once the overhang is at most {oc.target_overhang:g} of B (then {oc.target_overhang_late:g} "
             f"from step {oc.late_after}), no pool point's head hits earlier material and L_CA = 0, checked every "
-            f"{oc.check_every} steps; else after {oc.max_steps} steps or when the loss stalls")
+            f"{oc.check_every} steps; else after {oc.max_steps} steps, when the loss stalls"
+            + (f" or, from step {oc.late_after}, when neither the overhang nor the head hits improved over "
+               f"{oc.progress_window} steps" if oc.progress_window else ""))
     shown = [k for k in PROGRESS_TERMS if k not in ("sf", "po", "sr", "gc") or k in objectives]
     if refine is not None:
         say(f"optimise: refining the collision term around {len(refine.hits)} colliding waypoints of the print"

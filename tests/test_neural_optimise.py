@@ -244,11 +244,12 @@ def test_a_run_stops_once_the_constraints_are_met(problem):
     """Support-free within target_overhang (and L_CA = 0): that iterate is the result, found at a check."""
     planar = _run(problem, _cfg(max_steps=0)).satisfaction["planar_overhang_area_fraction"]
     res = _run(problem, _cfg(max_steps=400, target_loss=0.0, target_overhang=0.5 * planar))
-    assert res.converged and res.steps < 400 and res.steps % 10 == 0
+    assert res.converged and res.steps < 400 and res.steps % 10 == 0 and res.attrs["stop"] == "constraints"
     assert res.satisfaction["overhang_area_fraction"] <= 0.5 * planar
     assert res.attrs["collision"]["violating_pairs"] == 0
     # the same run without the rule goes on to its budget
-    assert _run(problem, _cfg(max_steps=res.steps + 20, target_loss=0.0)).steps == res.steps + 20
+    budget = _run(problem, _cfg(max_steps=res.steps + 20, target_loss=0.0))
+    assert budget.steps == res.steps + 20 and budget.attrs["stop"] == "budget"
 
 
 def test_the_late_overhang_target_applies_from_late_after(problem):
@@ -280,7 +281,7 @@ def test_the_progress_stall_test_stops_a_run_whose_overhang_no_longer_falls(prob
     late_after, the first step the test may fire; with the test off it runs its budget. A killed run resumes to
     the same stop."""
     res = _run(problem, _stall_cfg(max_steps=400, lr=1e-9))
-    assert res.steps == 100 and res.attrs["stalled_progress"] and res.converged      # stopped by a test
+    assert res.steps == 100 and res.attrs["stalled_progress"] and res.converged and res.attrs["stop"] == "progress"
     assert [r["step"] for r in res.attrs["progress"]] == list(range(50, 101, 10))
     assert _run(problem, _stall_cfg(max_steps=150, lr=1e-9, progress_window=0)).steps == 150
     store: dict[int, bytes] = {}

@@ -140,6 +140,8 @@ class LoopState:
     #: progress stall test's window; stalled: that test stopped the run
     progress: list[tuple[int, float, int]] = field(default_factory=list)
     stalled: bool = False
+    #: what ended the run: budget, constraints (met), loss (stall test or target), progress (stall test)
+    stop: str = "budget"
 
     @classmethod
     def start(cls, problem: FieldProblem) -> LoopState:
@@ -159,7 +161,7 @@ class LoopState:
             "trend": self.trend, "pretrain_history": torch.from_numpy(np.asarray(self.pretrain_history, np.float64)),
             "rng": _rng_state(),
             "grad_scale": self.grad_scale,
-            "progress": [list(r) for r in self.progress], "stalled": self.stalled,
+            "progress": [list(r) for r in self.progress], "stalled": self.stalled, "stop": self.stop,
             "seed": config.optim.seed, "config": config.model_dump(mode="json"),
         }, buf)
         return buf.getvalue()
@@ -186,6 +188,7 @@ class LoopState:
         self.grad_scale = state.get("grad_scale")
         self.progress = [(int(r[0]), float(r[1]), int(r[2])) for r in state.get("progress", [])]
         self.stalled = bool(state.get("stalled", False))
+        self.stop = str(state.get("stop", "budget"))
         _set_rng_state(state["rng"])
         return True
 
@@ -488,7 +491,7 @@ def iterate(problem: FieldProblem, st: LoopState, first: bool) -> int | None:
             st.best_state["loss"] = loss_of(problem, st.fields, st.best_state["fields"])
     total, terms, n_corr, n_viol = corrected_evaluation(problem, st.fields)
     if check and st.step > 0 and n_viol == 0 and problem.constraints_met(st.fields, st.step):
-        st.converged, st.best_state = True, None  # this (corrected) iterate is the result
+        st.converged, st.best_state, st.stop = True, None, "constraints"  # this (corrected) iterate is the result
         return None
     tv = float(total.detach())
     take_step(st, oc, total, tv)
@@ -499,7 +502,10 @@ def iterate(problem: FieldProblem, st: LoopState, first: bool) -> int | None:
     st.history["corrections"].append(float(n_corr))
     st.history["lr"].append(st.lr)
     st.best.append(min(st.best[-1], tv) if st.best else tv)
-    st.converged = converged(problem, st) or stalled_progress(problem, st)
+    if converged(problem, st):
+        st.converged, st.stop = True, "loss"
+    elif stalled_progress(problem, st):
+        st.converged, st.stop = True, "progress"
     return n_viol
 
 
@@ -649,7 +655,7 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
                "solver_backend": problem.arap.backend, "device": str(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,
                "head_collision": head,
-               "rollbacks": st.rollbacks, "stalled_progress": st.stalled,
+               "rollbacks": st.rollbacks, "stalled_progress": st.stalled, "stop": st.stop,
                "progress": [{"step": r[0], "overhang": r[1], "head_hits": r[2]} for r in st.progress],
                "best_step": None if st.best_state is None else int(st.best_state["step"]) + 1},
     )
