@@ -14,7 +14,7 @@ from neuralslicer.motion.profile import Nozzle
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.neural.field import CageGeometry, field_gradient
-from neuralslicer.neural.head_collision import HeadCollision, HeadShape, collision_pool
+from neuralslicer.neural.head_collision import FloorTets, HeadCollision, HeadShape, collision_pool
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.tetmesh import box_tet_grid
 from neuralslicer.toolpath.types import Toolpaths
@@ -57,8 +57,9 @@ def _box_problem(rng, n_points: int = 300, clearance: float = 1.0):
     points = rng.uniform([1.0, 1.0, 0.0], [19.0, 19.0, 19.0], (n_points, 3))  # some at the platform
     tet, bary = geometry.barycentric(points)
     head = HeadShape.from_nozzle(NOZZLE, 0.3)
+    floor = FloorTets.of(V, T, geometry.volumes, np.ones(len(T), bool), 0.0, head)
     gc = HeadCollision(points, tet, bary, geometry.tets, head, 0.0, clearance=clearance, lift=0.5,
-                       length=2.0, margin=2.0, device=torch.device("cpu"), dtype=torch.float64)
+                       length=2.0, margin=2.0, device=torch.device("cpu"), dtype=torch.float64, floor=floor)
     G = V[:, 2] + 3.0 * np.sin(V[:, 0] / 2.0)  # wavy layers: the holder hits the valleys' walls
     return geometry, gc, torch.tensor(G, dtype=torch.float64)
 
@@ -75,7 +76,30 @@ def test_gc_gradient_matches_finite_differences(rng):
     assert float(loss(G)) > 0
     pair, platform = gc.penalties(G, field_gradient(G, tets, grads))
     assert (pair > 0).sum() > 10 and (platform > 0).sum() > 0   # both terms take part in the check
+    assert (gc.floor_clear(field_gradient(G, tets, grads)) < gc.floor_clearance).sum() > 0   # the floor tets too
     assert torch.autograd.gradcheck(loss, (G.clone().requires_grad_(True),), eps=1e-6, atol=1e-7, rtol=1e-4)
+
+
+def test_floor_term_is_the_exact_platform_clearance_at_each_tets_lowest_solid_point(rng):
+    """The floor tets (solid within the head's reach of the platform): the head's lowest rim along the tet's LPD,
+    placed at the tet's lowest solid point, is the motion planner's exact platform clearance there, and no
+    point of the tet above the platform is closer: a floor tet that is clear is clear everywhere."""
+    geometry, gc, G = _box_problem(rng)
+    tets, grads = torch.from_numpy(geometry.tets), torch.from_numpy(geometry.bary_grads)
+    grad = field_gradient(G, tets, grads)
+    clear = gc.floor_clear(grad).numpy()
+    floor = gc.floor_tets.numpy()
+    lpd = _unit(grad.numpy()[floor])
+    low = np.maximum(geometry.vertices[geometry.tets[floor]].min(axis=1)[:, 2], 0.0)
+    assert gc.n_floor == len(floor) > 0 and (clear < 0).sum() > 5 and (clear > 0).sum() > 5
+    exact = platform_clearance(np.c_[np.zeros((len(floor), 2)), low], lpd, NOZZLE, 0.0)
+    np.testing.assert_allclose(np.minimum(clear, low), exact, atol=1e-9)
+    w = rng.dirichlet(np.ones(4), size=len(floor))
+    inside = np.einsum("fk,fkj->fj", w, geometry.vertices[geometry.tets[floor]])
+    above = inside[:, 2] >= 0.0
+    assert (platform_clearance(inside, lpd, NOZZLE, 0.0)[above] >= exact[above] - 1e-9).all()
+    # the count reports the floor tets whose head reaches below the platform
+    assert gc.count(G, grad)["floor_tets_hit"] == int((clear < 0).sum())
 
 
 @pytest.mark.parametrize("clearance", [1.0, 10.0])

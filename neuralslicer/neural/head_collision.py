@@ -100,6 +100,37 @@ class HeadShape:
         return low
 
 
+#: margin (mm) of the floor term: the head's lowest rim at least this far above the platform at every floor tet
+FLOOR_CLEARANCE = 0.5
+
+
+@dataclass
+class FloorTets:
+    """Cage tets that hold solid within the head's reach of the platform (the floor of L_GC's platform term):
+    tet indices (f,), the lowest z of solid in each (its lowest vertex, not below the platform) and volumes.
+    Their LPD is constant per tet, so a head clear of the platform at a tet's lowest point is clear at all of it:
+    the term is exact for the field's discretisation, where pool points near the platform are a cell apart."""
+
+    tets: np.ndarray
+    z_low: np.ndarray
+    volumes: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "FloorTets":
+        """No floor (no platform, or no solid near it)."""
+        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+    @classmethod
+    def of(cls, vertices: np.ndarray, tets: np.ndarray, volumes: np.ndarray, solid: np.ndarray, platform_z: float,
+           head: HeadShape) -> "FloorTets":
+        """The tets flagged ``solid`` (m,) whose lowest vertex lies within the head's reach below its tip
+        (holder radius + cone length, any tilt) of the platform."""
+        zmin = np.asarray(vertices, float)[np.asarray(tets)].min(axis=1)[:, 2]
+        reach = head.holder_radius + head.cone_length + head.cone_length * math.tan(head.half_angle)
+        idx = np.flatnonzero(np.asarray(solid, bool) & (zmin < platform_z + reach))
+        return cls(idx.astype(np.int64), np.maximum(zmin[idx], platform_z), np.asarray(volumes, float)[idx])
+
+
 @dataclass
 class CollisionPool:
     """Points (k,3) that stand for the solid in L_GC, and the spacing (mm) of the grid they come from.
@@ -297,7 +328,7 @@ class HeadCollision:
                  head: HeadShape, platform_z: float | None, clearance: float, lift: float,
                  length: float, margin: float, device: torch.device, dtype: torch.dtype, *,
                  n_base: int | None = None, links: np.ndarray | None = None, link_radius: float = 0.0,
-                 max_link_pairs: int = 10_000_000) -> None:
+                 max_link_pairs: int = 10_000_000, floor: FloorTets | None = None) -> None:
         self.points = np.asarray(points, np.float64)
         self.n_base = len(self.points) if n_base is None else int(n_base)
         reach = head.reach + clearance + lift + margin
@@ -321,6 +352,12 @@ class HeadCollision:
         self.points_t = torch.as_tensor(self.points, dtype=dtype, device=device)
         self.pairs = torch.zeros((0, 2), dtype=torch.int64, device=device)
         self.low_points = torch.zeros(0, dtype=torch.int64, device=device)
+        floor = floor if floor is not None and platform_z is not None else FloorTets.empty()
+        self.n_floor = len(floor.tets)
+        self.floor_tets = torch.as_tensor(floor.tets, device=device)
+        self.floor_z = torch.as_tensor(floor.z_low - (platform_z or 0.0), dtype=dtype, device=device)
+        self.floor_weights = torch.as_tensor(floor.volumes / length ** 3, dtype=dtype, device=device)
+        self.floor_clearance = min(self.platform_clearance, FLOOR_CLEARANCE)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -363,16 +400,26 @@ class HeadCollision:
             self.low_points = torch.nonzero(clear < self.platform_clearance + self.margin).flatten()
         return int(len(self.pairs))
 
+    def floor_clear(self, grad: torch.Tensor) -> torch.Tensor:
+        """Height above the platform (mm) of the head's lowest rim at the lowest solid point of each floor tet,
+        along that tet's LPD (f,): negative where the head reaches below the platform there."""
+        d = grad[self.floor_tets]
+        return self.floor_z + self.head.lowest(d / d.norm(dim=1, keepdim=True).clamp_min(1e-12))
+
     def penalties(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(per active pair c(p, x) (a,), per platform candidate penalty (b,)), differentiable."""
+        """(per active pair c(p, x) (a,), per platform candidate penalty (b,): pool points, then floor tets
+        weighted by their volume in pool cells), differentiable."""
         g, d, norm = self.values(G, grad)
         pair = (torch.relu(self._depth(self.pairs, d, self.clearance, self.lift))
                 * torch.relu(self._early(self.pairs, g, norm, self.lift)))
+        plat = [G.new_zeros(0)]
         low = self.low_points
-        if self.platform_z is None or len(low) == 0:
-            return pair, G.new_zeros(0)
-        clear = self.points_t[low, 2] + self.head.lowest(d[low]) - self.platform_z
-        return pair, torch.relu(self.platform_clearance - clear) ** 2
+        if self.platform_z is not None and len(low):
+            clear = self.points_t[low, 2] + self.head.lowest(d[low]) - self.platform_z
+            plat.append(torch.relu(self.platform_clearance - clear) ** 2)
+        if self.n_floor:
+            plat.append(self.floor_weights * torch.relu(self.floor_clearance - self.floor_clear(grad)) ** 2)
+        return pair, torch.cat(plat)
 
     def loss(self, G: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
         """L_GC = (sum of pair and platform penalties) / (base pool size * spacing^2), unit-free."""
@@ -394,7 +441,9 @@ class HeadCollision:
             low = self.points_t[:, 2] + self.head.lowest(d) - self.platform_z < inflate
             n_low = int(low.sum())
             hit |= low
+        n_floor = int((self.floor_clear(grad) < inflate).sum()) if self.n_floor else 0
         return {"colliding_pairs": n_pairs, "colliding_points": int(hit.sum()), "platform_points": n_low,
+                "floor_tets_hit": n_floor, "floor_tets": self.n_floor,
                 "pool_points": len(self.points), "refined_points": len(self.points) - self.n_base,
                 "refined_points_hit": int(hit[self.n_base:].sum())}
 

@@ -364,6 +364,7 @@ def optimise_field(
     load_checkpoint: Callable[[], bytes | None] | None = None,
     collision_pool: CollisionPool | None = None,
     warm_start: Mapping[str, np.ndarray] | None = None,
+    solid_tets: np.ndarray | None = None,
 ) -> FieldResult:
     """Optimise the SIREN fields q, s so that G = deformed z meets the SF/SR/PO/GC objectives.
 
@@ -386,11 +387,14 @@ def optimise_field(
         key) instead of the identity and the initial guess, which is then not pre-trained. The constraint
         stop of a warm-started run accepts the overhang it starts from plus ``optim.refine.overhang_slack``.
         A checkpoint, when there is one, still wins.
+    solid_tets : (m,) bool, the cage tets that hold solid: with the tets holding B or pool points they make the
+        floor of L_GC's platform term (the tets within the head's reach of the platform).
     """
     config = config or NeuralConfig()
     t0 = time.perf_counter()
     with deterministic_algorithms():
-        problem = FieldProblem(cage_vertices, cage_tets, samples, stress, config, platform_z, collision_pool)
+        problem = FieldProblem(cage_vertices, cage_tets, samples, stress, config, platform_z, collision_pool,
+                               solid_tets)
         st = LoopState.start(problem)
         if warm_start is not None:
             load_weights(st.fields, warm_start)
@@ -451,12 +455,22 @@ def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.nd
                   "base_points": base, "added_points": pool.n_refined, "links": int(len(pool.links)),
                   "fine_spacing": pool.fine_spacing, "radius": pool.link_radius,
                   "warm_start": refine.weights is not None}
+    if pool is not None:
+        options["solid_tets"] = solid_tets(solid, cage_vertices, cage_tets)
     result = optimise_field(cage_vertices, cage_tets, samples, stress, config=cfg, platform_z=solid.platform_z,
                             collision_pool=pool, **options)
     result.attrs.update(objectives=list(objectives), kind="neural")
     if record is not None:
         result.attrs["refinement"] = record
     return result
+
+
+def solid_tets(solid: Solid, vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Cage tets (m,) that hold solid: H <= 0 at a vertex or the centroid."""
+    vertices, tets = np.asarray(vertices, np.float64), np.asarray(tets, np.int64)
+    inside_v = np.asarray(solid.H(vertices)) <= 0
+    inside_c = np.asarray(solid.H(vertices[tets].mean(axis=1))) <= 0
+    return inside_v[tets].any(axis=1) | inside_c
 
 
 def run_loop(problem: FieldProblem, st: LoopState, save: Callable[[], None], progress: ProgressFn | None,

@@ -13,7 +13,7 @@ from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.deformation import ArapDeformation
 from neuralslicer.neural.device import resolve_device, resolve_dtype
 from neuralslicer.neural.field import CageGeometry, field_gradient, unit
-from neuralslicer.neural.head_collision import CollisionPool, HeadCollision, HeadShape
+from neuralslicer.neural.head_collision import CollisionPool, FloorTets, HeadCollision, HeadShape
 from neuralslicer.neural.networks import DeformationFields
 from neuralslicer.samples import SurfaceSamples
 
@@ -23,8 +23,9 @@ class FieldProblem:
 
     def __init__(self, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
                  stress: StressSamples | None, config: NeuralConfig, platform_z: float | None,
-                 collision_pool: CollisionPool | None = None) -> None:
-        """Map B (and T) to the cage, factor the ARAP system, build the collision terms."""
+                 collision_pool: CollisionPool | None = None, solid_tets: np.ndarray | None = None) -> None:
+        """Map B (and T) to the cage, factor the ARAP system, build the collision terms. ``solid_tets``: the cage
+        tets that hold solid (m,) bool, for L_GC's floor term (besides the tets holding B or pool points)."""
         self.config = config
         self.phi = math.radians(config.apex_deg())
         self.device = resolve_device(config.device)
@@ -52,6 +53,7 @@ class FieldProblem:
         self.b_active = active
         self.b_tet = g.locate(pts[active])
         self.b_tet_t = T(self.b_tet, torch.int64)
+        self.b_platform_tet = g.locate(pts[on_pf])
         self.b_points_t = T(pts[active])
         self.b_all_t = T(pts)
         self.b_normals = np.asarray(samples.normals, dtype=np.float64)[active]
@@ -77,14 +79,15 @@ class FieldProblem:
         self.t_tet_t = T(self.t_tet, torch.int64)
         self.t_tau_t = T(self.t_tau)
         self.t_volumes_t = T(self.t_volumes)
-        self.head = self._head_collision(collision_pool)
+        self.head = self._head_collision(collision_pool, solid_tets)
         #: what the last constraint check measured (overhang, its target, pool points whose head hits), for progress
         self.last_check: dict[str, float] = {}
         #: the constraint stop accepts at least this overhang fraction (a warm start's own, see optimise_field)
         self.overhang_floor = 0.0
 
-    def _head_collision(self, pool: CollisionPool | None) -> HeadCollision | None:
-        """L_GC on the pool of solid points (None when its weight is 0); the pool is required then."""
+    def _head_collision(self, pool: CollisionPool | None, solid_tets: np.ndarray | None) -> HeadCollision | None:
+        """L_GC on the pool of solid points and the floor tets (None when its weight is 0); the pool is required
+        then."""
         cl = self.config.loss
         if cl.w_gc <= 0:
             return None
@@ -92,11 +95,19 @@ class FieldProblem:
             raise ValueError("the global collision term (w_gc > 0) needs a collision_pool of points in the solid")
         tet, bary = self.geometry.barycentric(pool.points)
         head = HeadShape.from_nozzle(cl.head, cl.head_min_height)
+        floor = None
+        if self.platform_z is not None:
+            g = self.geometry
+            solid = np.zeros(len(g.tets), bool) if solid_tets is None else np.asarray(solid_tets, bool).copy()
+            solid[tet] = True
+            solid[self.b_tet] = True
+            solid[self.b_platform_tet] = True
+            floor = FloorTets.of(g.vertices, g.tets, g.volumes, solid, self.platform_z, head)
         clearance = cl.gc_clearance if cl.gc_clearance is not None else min(1.5 * pool.spacing, cl.head.cone_length)
         return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
                              cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype,
                              n_base=pool.n_base, links=pool.links, link_radius=pool.link_radius,
-                             max_link_pairs=self.config.optim.refine.max_pairs)
+                             max_link_pairs=self.config.optim.refine.max_pairs, floor=floor)
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
         """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
@@ -209,7 +220,8 @@ class FieldProblem:
             return False
         if self.head is None:
             return True
-        hits = self.head.count(G, grad, oc.stop_head_growth * self.head.clearance)["colliding_points"]
+        count = self.head.count(G, grad, oc.stop_head_growth * self.head.clearance)
+        hits = count["colliding_points"] + count["floor_tets_hit"]
         self.last_check["head_hits"] = hits
         return not hits
 
@@ -224,7 +236,8 @@ class FieldProblem:
         hits = 0
         if self.head is not None:
             growth = self.config.optim.stop_head_growth * self.head.clearance
-            hits = int(self.head.count(G, grad, growth)["colliding_points"])
+            count = self.head.count(G, grad, growth)
+            hits = int(count["colliding_points"] + count["floor_tets_hit"])
         return self.overhang(grad), hits
 
     def planar_lpd_satisfaction(self) -> dict[str, float]:
