@@ -53,8 +53,11 @@ def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output fold
     p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
     p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
     p.add_argument("--robot", action="store_true", help="also write robot_waypoints.csv/.json")
+    p.add_argument("--collision-refinements", type=int, default=None,
+                   help="refine the print head term around the collisions of the print and re-optimise from that "
+                        "field, at most this many times (default 3)")
     p.add_argument("--collision-retries", type=int, default=None,
-                   help="re-optimise with smoother fields while the nozzle collides (default 2)")
+                   help="then re-optimise with smoother fields while the nozzle collides (default 2)")
     p.add_argument("--collision-fallback", choices=("blend", "none"), default=None,
                    help="still colliding: blend the field toward planar layers until collision-free (default blend) "
                         "or keep the colliding program")
@@ -69,6 +72,7 @@ CONFIG_KEYS = {
     "network": ("neural", "network"),
     "device": ("neural", "device"),
     "seed": ("neural", "optim", "seed"),
+    "collision_refinements": ("collision_refinements",),
     "collision_retries": ("collision_retries",),
     "collision_fallback": ("collision_fallback",),
     "machine": ("machine",),

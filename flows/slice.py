@@ -132,8 +132,8 @@ def slice_pipeline(
     attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
     # what the next field is refined against: every print so far (L_GC's pool grows around their collisions)
     refine: dict[str, Any] = {}
-    label, smoothing = "optimised", 0
-    for attempt in range(config.collision_retries + 1):
+    label, smoothing, refinements = "optimised", 0, 0
+    while True:
         if config.method == "s3":
             field_ref = log.run(s3_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
                                 objectives=objectives, config=config.s3)
@@ -145,17 +145,20 @@ def slice_pipeline(
                            machine=machine, t_max=config.layers.t_max)
         attempts.append((label, field_ref, printing))
         collisions = n_collisions(printing)
-        if collisions == 0 or not objectives or attempt == config.collision_retries or config.method == "s3":
+        if collisions == 0 or not objectives or config.method == "s3":
             break  # S3's own answer to collisions is a smoother rotation field: the planar blend below serves it
         hits = len(read_part_collisions(printing)[0])
-        if "gc" in objectives and hits:
+        if "gc" in objectives and hits and refinements < config.collision_refinements:
             # the exact check names where the head hits: L_GC's pool is refined there, from the field that printed it
+            refinements += 1
             prints = [*refine.get("refine_prints", []), printing]
             refine = {"refine_prints": prints, "warm_start": field_ref}
             label = f"refined around the collisions of {len(prints)} print(s)"
             get_run_logger().warning("%d nozzle collisions (%d of the head at a waypoint): refining the collision "
                                      "term there", collisions, hits)
             continue
+        if smoothing == config.collision_retries:
+            break
         # the paper's fallback: smoother fields (larger harmonic weights) and the local collision term, then again
         smoothing += 1
         neural = smoother(neural, config.collision_smoothness_factor)

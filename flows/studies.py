@@ -176,7 +176,7 @@ def batch_branches(models: list[str], options: StudyOptions) -> list[Branch]:
 def _as_printed(config: SliceConfig) -> SliceConfig:
     """A comparison's configuration: every field printed as computed, its collisions counted, not repaired (no
     re-optimisation, no planar blend), so each branch shows its own method."""
-    return _variant(config, "study", collision_retries=0, collision_fallback="none")
+    return _variant(config, "study", collision_refinements=0, collision_retries=0, collision_fallback="none")
 
 
 def methods_branches(model: str, options: StudyOptions) -> list[Branch]:

@@ -46,7 +46,12 @@ class SliceConfig(BaseModel):
     toolpath: ToolpathConfig = Field(default_factory=ToolpathConfig)
     machine: str = Field("table_bc_linuxcnc", description="machine profile: a shipped name or a YAML file")
     robot: bool = Field(False, description="also write robot_waypoints.csv/.json (position, tool quaternion, extrusion)")
-    collision_retries: int = Field(2, ge=0, le=5, description="re-optimise with smoother fields while the nozzle collides")
+    collision_refinements: int = Field(
+        3, ge=0, le=8, description="while the print's exact check finds the head hitting the part or the platform "
+        "(with the gc objective): refine L_GC's pool there and re-optimise from the field that printed it, at most "
+        "this many times (each round adds the new hits to the earlier ones)")
+    collision_retries: int = Field(2, ge=0, le=5, description="then re-optimise with smoother fields while the nozzle "
+                                   "collides (the paper's answer)")
     collision_smoothness_factor: float = Field(100.0, gt=1, description="harmonic weights multiplied per retry")
     collision_fallback: Literal["blend", "none"] = Field(
         "blend", description="still colliding after the retries: blend the field toward planar layers "

@@ -30,6 +30,7 @@ def tiny_config(max_steps: int = 8, checkpoint_every: int = 4, objectives: list[
                    "optim": {"max_steps": max_steps, "checkpoint_every": checkpoint_every, "target_overhang": 0}},
         "layers": {"layer_height": 1.5, "t_min": 0.75, "t_max": 2.5, "thickness_samples": 1000},
         "toolpath": {"line_width": 1.0, "spacing": 1.5, "n_shells": 1, "infill_density": 0.3},  # the nozzle lays <= 1 mm
+        "collision_refinements": 0,
         "collision_retries": 0,
         "collision_fallback": "none",
     })

@@ -19,7 +19,10 @@ zero for a collision-free field with its margins, and its gradient moves the hea
 head's lowest point below the platform adds ``relu(c_p - (z_low - platform_z))^2`` with the
 platform clearance ``c_p = min(clearance, cone_length / 2)`` (the platform is exact: only the tip
 between pool points and the tool axis blur it, and a vertical head at the platform, whose rim is
-``cone_length`` above its tip, must stay free).
+``cone_length`` above its tip, must stay free). The same penalty, with a 0.5 mm margin and weighted by volume,
+holds at every cage tet that has solid within the head's reach of the platform (``FloorTets``), placed at the
+tet's lowest solid point along the tet's LPD: exact for the field's discretisation, where pool points are a cell
+apart.
 
 The pairs of pool points within the head's reach of each other are found once (a KD-tree pair
 query); every ``optim.check_every`` steps they are tested against the current field in vectorised chunks and
