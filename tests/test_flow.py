@@ -320,3 +320,27 @@ def test_collisions_of_the_print_refine_the_collision_term(tmp_path, small_part)
     record = attrs["refinement"]
     assert record["warm_start"] and record["hits"] == len(hits) and record["added_points"] > 0
     assert attrs["steps"] <= 10  # the refinement budget, from the earlier weights
+
+
+def test_refinement_rounds_do_not_use_up_the_retries(tmp_path, small_part):
+    """With gc and a head that still hits after the first optimisation, the flow refines L_GC around the hits
+    (collision_refinements rounds, from the field that printed them) even with no smoothing retry allowed, then
+    stops there; every print on the way is reported."""
+    from neuralslicer.motion import load_profile
+
+    profile = load_profile("table_bc_linuxcnc").model_dump(mode="json")
+    profile["nozzle"] = {"cone_half_angle_deg": 85.0, "cone_length": 3.0, "holder_radius": 1.0, "holder_length": 1.0}
+    machine = tmp_path / "wide_nozzle.yaml"
+    machine.write_text(yaml.safe_dump(profile))
+    # a weak head term (w_gc 1e-6): the field leaves its saddle as the SF-only one does, and still collides
+    cfg = write_config(tmp_path / "cfg.yaml", machine=str(machine), collision_refinements=1, collision_retries=0,
+                       neural={"optim": {"max_steps": 20, "checkpoint_every": 5, "refine": {"steps": 5}},
+                               "loss": {"w_gc": 1e-6}})
+    out = tmp_path / "run"
+    assert main(slice_cmd(small_part, out, cfg, "--objectives", "sf,gc")) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    fields = [r for r in json.loads((out / "run.json").read_text())["tasks"] if r["task"] == "field"]
+    assert len(fields) == 2 and metrics["collision_resolution.0.collisions"] > 0
+    assert metrics["collision_resolution.0.stage"] == "optimised"
+    assert metrics["collision_resolution.1.stage"] == "refined around the collisions of 1 print(s)"
+    assert "collision_resolution.2.stage" not in metrics and metrics["field.steps"] <= 5
