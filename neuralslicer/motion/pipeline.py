@@ -52,6 +52,9 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     tp, report, lifted = raise_travels(tp, report, profile.nozzle, platform_z, default_min_height(tp))
     tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg)
     tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg)
+    # a travel into a waypoint that collided itself shows only once the tilt has cleared that waypoint: lift it now
+    tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, default_min_height(tp))
+    lifted = _merged_lifts(lifted, again)
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
@@ -77,6 +80,15 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     metrics["timings_s"] = {"toolpaths": t1 - t0, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
+
+
+def _merged_lifts(first: dict, second: dict) -> dict:
+    """The travel-lift summary of two passes of ``raise_travels`` (the second on what the tilt left)."""
+    return {"n_travels_lifted": first["n_travels_lifted"] + second["n_travels_lifted"],
+            "n_travels_by_clearance_plane": first["n_travels_by_clearance_plane"] + second["n_travels_by_clearance_plane"],
+            "max_lift_mm": max(first["max_lift_mm"], second["max_lift_mm"]),
+            "n_travels_unresolved": second["n_travels_unresolved"],
+            "n_travels_lifted_after_tilt": second["n_travels_lifted"]}
 
 
 def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,

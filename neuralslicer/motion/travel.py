@@ -105,6 +105,9 @@ def raise_travels(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platfo
     keep = ~np.isin(report.indices, at) | (report.kind != TRAVEL_PATH)
     added = np.r_[0, np.cumsum(counts)]
     shift = added[np.searchsorted(at, report.indices[keep], side="right")]
+    if "tilted_waypoints" in out.attrs:  # indices recorded by an earlier tilt move with their waypoints
+        tilted = np.asarray(out.attrs["tilted_waypoints"], np.int64)
+        out.attrs["tilted_waypoints"] = [int(i) for i in tilted + added[np.searchsorted(at, tilted, side="right")]]
     # a waypoint that also collided itself (part/platform) keeps that collision, its detour's points further on
     moved = CollisionReport(report.indices[keep] + shift, report.locations[keep], report.kind[keep])
     summary.update(n_travels_lifted=len(detours), n_travels_unresolved=int(len(travel) - len(detours)))
