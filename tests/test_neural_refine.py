@@ -196,14 +196,28 @@ def exact_collisions(V, T, G, probe, only=None):
     return probe[report.indices], report.locations, report
 
 
-def test_refinement_clears_the_collisions_the_coarse_pool_missed(loop):
-    V, T, samples, probe = loop
-    cfg = NeuralConfig.model_validate({
+def _coarse_config(floor: bool) -> NeuralConfig:
+    """100 grid points: 3.4 mm apart in a tube 8 mm thick (plus the surface samples, one per cell)."""
+    return NeuralConfig.model_validate({
         "network": "small", "device": "cpu",
-        # 100 grid points: 3.4 mm apart in a tube 8 mm thick (plus the surface samples, one per cell)
-        "loss": {"head": NOZZLE.model_dump(), "head_min_height": 0.3, "gc_points": 100},
+        "loss": {"head": NOZZLE.model_dump(), "head_min_height": 0.3, "gc_points": 100, "gc_floor": floor},
         "optim": {"max_steps": 600, "seed": 0, "refine": {"steps": 200}},
     })
+
+
+def test_the_floor_term_clears_what_the_coarse_pool_misses_at_the_platform(loop):
+    """The same coarse pool with the floor of the platform term (the default): the field the exact check judges
+    collision-free, no refinement needed, and still support-free."""
+    V, T, samples, probe = loop
+    res = optimise_for_solid(TorusSolid(), V, T, samples, None, ["sf", "po", "gc", "ca"], _coarse_config(True))
+    assert res.converged and res.attrs["head_collision"]["floor_tets"] > 0
+    assert exact_collisions(V, T, res.G, probe)[2].count == 0
+    assert res.satisfaction["overhang_area_fraction"] < 0.05 * res.satisfaction["planar_overhang_area_fraction"]
+
+
+def test_refinement_clears_the_collisions_the_coarse_pool_missed(loop):
+    V, T, samples, probe = loop
+    cfg = _coarse_config(False)     # without the floor, so that the coarse pool misses collisions
     objectives = ["sf", "po", "gc", "ca"]
     coarse = optimise_for_solid(TorusSolid(), V, T, samples, None, objectives, cfg)
     assert coarse.converged and coarse.attrs["head_collision"]["colliding_points"] == 0   # clean on its pool

@@ -95,6 +95,9 @@ class LossConfig(BaseModel):
         0.1, ge=0,
         description="mm: pool points up to this far ahead of the printing front count as printed, with the head "
         "lifted as far along its axis (so points straight ahead never do)")
+    gc_floor: bool = Field(
+        True, description="L_GC's platform term also at every cage tet with solid within the head's reach of the "
+        "platform, at its lowest solid point along its LPD (the floor; off: at the pool's points only)")
 
     correction_steps: int = Field(
         20, ge=0, description="max DC3 correction steps before one loss evaluation (stops when feasible)"
