@@ -44,6 +44,20 @@ class Killed(Exception):
     pass
 
 
+def _killed_run(problem, cfg, step: int, **kw) -> dict[int, bytes]:
+    """Run until the checkpoint of `step` is saved, then die (Killed); the checkpoints saved, by step."""
+    store: dict[int, bytes] = {}
+
+    def save_then_die(blob: bytes, at: int) -> None:
+        store[at] = blob
+        if at == step:
+            raise Killed
+
+    with pytest.raises(Killed):
+        _run(problem, cfg, save_checkpoint=save_then_die, **kw)
+    return store
+
+
 def _sphere_pool(spacing: float = 1.5):
     """A grid of points inside the sphere of the problem fixture (L_GC's pool)."""
     from neuralslicer.neural.head_collision import CollisionPool
@@ -66,15 +80,7 @@ def test_kill_and_resume_follows_the_same_trajectory(problem, gc):
         kw["collision_pool"] = _sphere_pool()
     final: dict[str, bytes] = {}
     full = _run(problem, cfg, save_checkpoint=lambda b, s: final.__setitem__("full", b), **kw)
-    store: dict[int, bytes] = {}
-
-    def save_then_die(blob: bytes, step: int) -> None:
-        store[step] = blob
-        if step == 10:
-            raise Killed
-
-    with pytest.raises(Killed):
-        _run(problem, cfg, save_checkpoint=save_then_die, **kw)
+    store = _killed_run(problem, cfg, 10, **kw)
     assert max(store) == 10
     resumed = _run(problem, cfg, load_checkpoint=lambda: store[10],
                    save_checkpoint=lambda b, s: final.__setitem__("resumed", b), **kw)
@@ -284,15 +290,7 @@ def test_the_progress_stall_test_stops_a_run_whose_overhang_no_longer_falls(prob
     assert res.steps == 100 and res.attrs["stalled_progress"] and res.converged and res.attrs["stop"] == "progress"
     assert [r["step"] for r in res.attrs["progress"]] == list(range(50, 101, 10))
     assert _run(problem, _stall_cfg(max_steps=150, lr=1e-9, progress_window=0)).steps == 150
-    store: dict[int, bytes] = {}
-
-    def save_then_die(blob: bytes, step: int) -> None:
-        store[step] = blob
-        if step == 75:
-            raise Killed
-
-    with pytest.raises(Killed):
-        _run(problem, _stall_cfg(max_steps=400, lr=1e-9, checkpoint_every=75), save_checkpoint=save_then_die)
+    store = _killed_run(problem, _stall_cfg(max_steps=400, lr=1e-9, checkpoint_every=75), 75)
     resumed = _run(problem, _stall_cfg(max_steps=400, lr=1e-9, checkpoint_every=75), load_checkpoint=lambda: store[75])
     assert resumed.steps == 100 and resumed.attrs["progress"] == res.attrs["progress"]
 

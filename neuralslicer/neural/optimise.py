@@ -137,9 +137,8 @@ class LoopState:
     pretrain_history: np.ndarray = field(default_factory=lambda: np.zeros(0))
     grad_scale: float | None = None
     #: (step, overhang fraction of B, pool points whose head hits) every optim.progress_every steps near the
-    #: progress stall test's window; stalled: that test stopped the run
+    #: progress stall test's window
     progress: list[tuple[int, float, int]] = field(default_factory=list)
-    stalled: bool = False
     #: what ended the run: budget, constraints (met), loss (stall test or target), progress (stall test)
     stop: str = "budget"
 
@@ -161,7 +160,7 @@ class LoopState:
             "trend": self.trend, "pretrain_history": torch.from_numpy(np.asarray(self.pretrain_history, np.float64)),
             "rng": _rng_state(),
             "grad_scale": self.grad_scale,
-            "progress": [list(r) for r in self.progress], "stalled": self.stalled, "stop": self.stop,
+            "progress": [list(r) for r in self.progress], "stop": self.stop,
             "seed": config.optim.seed, "config": config.model_dump(mode="json"),
         }, buf)
         return buf.getvalue()
@@ -187,7 +186,6 @@ class LoopState:
         self.pretrain_history = state["pretrain_history"].cpu().numpy()
         self.grad_scale = state.get("grad_scale")
         self.progress = [(int(r[0]), float(r[1]), int(r[2])) for r in state.get("progress", [])]
-        self.stalled = bool(state.get("stalled", False))
         self.stop = str(state.get("stop", "budget"))
         _set_rng_state(state["rng"])
         return True
@@ -542,8 +540,7 @@ def stalled_progress(problem: FieldProblem, st: LoopState) -> bool:
     best_over, best_hits = min(r[1] for r in before), min(r[2] for r in before)
     gained = min(r[1] for r in within) < (1.0 - oc.progress_rtol) * best_over
     cleared = min(r[2] for r in within) < best_hits
-    st.stalled = not gained and not cleared
-    return st.stalled
+    return not gained and not cleared
 
 
 def take_step(st: LoopState, oc, total: torch.Tensor, tv: float) -> bool:
@@ -669,7 +666,7 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
                "solver_backend": problem.arap.backend, "device": str(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,
                "head_collision": head,
-               "rollbacks": st.rollbacks, "stalled_progress": st.stalled, "stop": st.stop,
+               "rollbacks": st.rollbacks, "stalled_progress": st.stop == "progress", "stop": st.stop,
                "progress": [{"step": r[0], "overhang": r[1], "head_hits": r[2]} for r in st.progress],
                "best_step": None if st.best_state is None else int(st.best_state["step"]) + 1},
     )

@@ -208,8 +208,8 @@ class FieldProblem:
         points included, with the head grown by ``optim.stop_head_growth`` times its clearance); never with a
         strength objective, which has no satisfied state (always False when target_overhang is 0 or SF is
         off). L_CA = 0 is the caller's part: the DC3 correction before each evaluation reports it."""
-        cl, oc = self.config.loss, self.config.optim
-        if oc.target_overhang <= 0 or cl.w_sf <= 0 or cl.w_sr > 0 or not len(self.b_tet):
+        oc = self.config.optim
+        if not self.has_satisfied_state():
             return False
         target = max(oc.target_overhang, oc.target_overhang_late) if step >= oc.late_after else oc.target_overhang
         target = max(target, self.overhang_floor)
@@ -227,10 +227,14 @@ class FieldProblem:
         self.last_check["head_hits"] = hits
         return not hits
 
-    def watches_progress(self) -> bool:
-        """Whether the progress stall test applies: the constraint stop can fire (SF on, no strength objective)."""
+    def has_satisfied_state(self) -> bool:
+        """Whether the constraint stop can fire: an overhang target, SF on, samples B, no strength objective."""
         cl, oc = self.config.loss, self.config.optim
-        return oc.progress_window > 0 and oc.target_overhang > 0 and cl.w_sf > 0 and cl.w_sr <= 0 and len(self.b_tet) > 0
+        return oc.target_overhang > 0 and cl.w_sf > 0 and cl.w_sr <= 0 and len(self.b_tet) > 0
+
+    def watches_progress(self) -> bool:
+        """Whether the progress stall test applies: it is on and the constraint stop can fire."""
+        return self.config.optim.progress_window > 0 and self.has_satisfied_state()
 
     def progress(self, fields: DeformationFields) -> tuple[float, int]:
         """(overhang area fraction of B, pool points whose head hits, grown as the constraint stop's) now."""
