@@ -18,7 +18,7 @@ from neuralslicer.scalar_field import smallest_clean_blend
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from flows.settings import artifact_key
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
-from tasks.codec import n_collisions, read_part_collisions, store_user_field
+from tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
 from tasks.common import run_step
 from tasks.export import export_task
 from tasks.fea import fea_task, stress_samples_task, verify_task
@@ -54,6 +54,12 @@ def model_name(spec: ModelSpec) -> str:
 def smoother(config: NeuralConfig, factor: float) -> NeuralConfig:
     """The neural config with the harmonic (smoothness) weights multiplied."""
     loss = config.loss.model_copy(update={"w_hs": config.loss.w_hs * factor, "w_hq": config.loss.w_hq * factor})
+    return config.model_copy(update={"loss": loss})
+
+
+def firmer_floor(config: NeuralConfig, factor: float) -> NeuralConfig:
+    """The neural config with L_GC's floor (platform) weight multiplied."""
+    loss = config.loss.model_copy(update={"gc_floor_weight": config.loss.gc_floor_weight * factor})
     return config.model_copy(update={"loss": loss})
 
 
@@ -154,6 +160,11 @@ def slice_pipeline(
             prints = [*refine.get("refine_prints", []), printing]
             refine = {"refine_prints": prints, "warm_start": field_ref}
             label = f"refined around the collisions of {len(prints)} print(s)"
+            if n_platform_collisions(printing):
+                # heads below the platform beyond what the planner's turn clears: the floor's quadratic penalty
+                # settled short of the platform against SF, so it weighs more from here on
+                neural = firmer_floor(neural, neural.optim.refine.floor_weight_factor)
+                label += f", floor weight x{neural.loss.gc_floor_weight / config.neural.loss.gc_floor_weight:g}"
             get_run_logger().warning("%d nozzle collisions (%d of the head at a waypoint): refining the collision "
                                      "term there", collisions, hits)
             continue

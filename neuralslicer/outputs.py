@@ -126,11 +126,13 @@ def write_layers(layers_dir: Path, meshes: list[trimesh.Trimesh]) -> None:
 
 
 def collision_resolution(samples: SurfaceSamples, attempts: list[Attempt], alpha_deg: float) -> list[dict]:
-    """Per field printed on the way to the program: its label, nozzle collisions and overhang area fraction."""
+    """Per field printed on the way to the program: its label, nozzle collisions (of them below the platform) and
+    overhang area fraction."""
     rows = []
     for a in attempts:
         _, lpd, _ = a.field.sample(samples.points)
         rows.append({"stage": a.label, "collisions": int(a.print_metrics.get("n_collisions", 0)),
+                     "platform_collisions": int(a.print_metrics.get("n_platform_collisions", 0)),
                      "overhang_area_fraction": overhang_area_fraction(samples.normals, samples.areas,
                                                                       samples.on_platform, lpd, alpha_deg)})
     return rows
@@ -138,8 +140,10 @@ def collision_resolution(samples: SurfaceSamples, attempts: list[Attempt], alpha
 
 def collision_table(rows: list[dict], alpha_deg: float) -> str:
     """Markdown table of the collision resolution, in the order tried."""
-    lines = [f"| stage | nozzle collisions | overhang area (α = {alpha_deg:g}°) |", "| --- | --- | --- |"]
-    lines += [f"| {r['stage']} | {r['collisions']:,} | {100 * r['overhang_area_fraction']:.2f} % |" for r in rows]
+    lines = [f"| stage | nozzle collisions | of them below the platform | overhang area (α = {alpha_deg:g}°) |",
+             "| --- | --- | --- | --- |"]
+    lines += [f"| {r['stage']} | {r['collisions']:,} | {r['platform_collisions']:,} | "
+              f"{100 * r['overhang_area_fraction']:.2f} % |" for r in rows]
     return "\n".join(lines)
 
 
@@ -188,6 +192,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
     metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
+    metrics.update({f"platform_turn.{k}": v for k, v in (run.print_metrics.get("axis_platform") or {}).items()})
     metrics.update({f"travel.{k}": v for k, v in (run.print_metrics.get("travel_lift") or {}).items()})
     metrics.update({f"beads.{k}": v for k, v in (run.print_metrics.get("beads") or {}).items() if not k.startswith("hist_")})
     return metrics
@@ -279,6 +284,13 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
             f"{reach['n_clamped']:,} waypoints needed a tool axis beyond the machine's B range; it was turned back onto "
             f"the limit (largest turn {reach['max_clamp_deg']:.1f}°, {reach.get('n_beyond_tilt_bound', 0):,} by more than "
             "the collision tilt bound), so the bead there leaves the field's print direction by that angle.")
+    turned = run.print_metrics.get("axis_platform") or {}
+    if turned.get("n_clamped") or turned.get("n_unreachable"):
+        sections["Tool axes turned up at the platform"] = (
+            f"{turned['n_clamped']:,} waypoints near the platform had a tool axis tilted so far that the head dipped below "
+            f"the platform; it was turned up toward +z just enough to clear it (largest turn {turned['max_clamp_deg']:.1f}°, "
+            f"at most the collision tilt bound), so the bead there leaves the field's print direction by that angle. "
+            f"{turned['n_unreachable']:,} needed more and are left to the collision check.")
     write_json_atomic(d / "metrics.json", metrics)
     write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {run.model}", metrics, figures, sections))
     return json.loads(json.dumps(metrics, default=float))

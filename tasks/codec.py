@@ -109,6 +109,11 @@ def n_collisions(ref: ArtifactRef) -> int:
     return int(attrs_of(ref)["metrics"].get("n_collisions", 0))
 
 
+def n_platform_collisions(ref: ArtifactRef) -> int:
+    """Waypoints of a stored print whose head is below the platform."""
+    return int(attrs_of(ref)["metrics"].get("n_platform_collisions", 0))
+
+
 def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
     """Waypoints (n,3) of a stored print and which of them collide (n,) bool."""
     arrays, _ = read(ref, ["toolpaths/xyz", "collisions/indices"])

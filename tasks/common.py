@@ -27,11 +27,11 @@ STEP_VERSIONS = {
     "cage": "1",
     "fea": "1",
     "stress_samples": "1",
-    "field": "3",
+    "field": "4",
     "field_s3": "1",
     "field_blend": "1",
     "layers": "5",
-    "toolpaths": "8",
+    "toolpaths": "9",
     "verify": "2",
     "export": "3",
 }

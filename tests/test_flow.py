@@ -342,5 +342,12 @@ def test_refinement_rounds_do_not_use_up_the_retries(tmp_path, small_part):
     fields = [r for r in json.loads((out / "run.json").read_text())["tasks"] if r["task"] == "field"]
     assert len(fields) == 2 and metrics["collision_resolution.0.collisions"] > 0
     assert metrics["collision_resolution.0.stage"] == "optimised"
-    assert metrics["collision_resolution.1.stage"] == "refined around the collisions of 1 print(s)"
+    # heads below the platform in the first print: the refined field's floor (platform) term weighs 3x more
+    assert metrics["collision_resolution.0.platform_collisions"] > 0
+    assert metrics["collision_resolution.1.stage"] == "refined around the collisions of 1 print(s), floor weight x3"
     assert "collision_resolution.2.stage" not in metrics and metrics["field.steps"] <= 5
+    from storage import ArtifactStore
+    store = ArtifactStore(str(out / "store.zarr"), create=False)
+    weights = sorted(store.attrs(f"lpart/field/{d}")["config"]["loss"]["gc_floor_weight"]
+                     for d in store.children("lpart/field"))
+    assert weights == [1.0, 3.0]

@@ -231,3 +231,41 @@ def test_poses_above_the_material_are_skipped_exactly():
     axes = rng.normal(size=(300, 3)) * [0.4, 0.4, 1] + [0, 0, 1.5]
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     _assert_exact(tips, axes, pts)
+
+
+def test_holder_anchors_clear_nearby_poses_soundly(monkeypatch):
+    """Along a dense sweep the anchors' clearance bounds clear most poses without a test of their own, the bound
+    never exceeds the holder's true distance to the material, and the hits are those of the brute-force test."""
+    from neuralslicer.motion import collision as coll
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([-40, -40, 20], [40, 40, 28], size=(8000, 3))
+    s = np.linspace(0.0, 1.0, 400)
+    tips = np.c_[-30 + 60 * s, 10 * np.sin(6 * s), -24.0 + 7.0 * np.sin(9 * s)]        # 0.15 mm apart
+    tilt = np.radians(35.0) * np.sin(2 * s)
+    axes = np.c_[np.sin(tilt), np.zeros_like(s), np.cos(tilt)]
+    tested: list[int] = []
+    scan = coll._holder_scan
+
+    def counting_scan(material, xyz, axis, nozzle, poses, *args):
+        tested.append(len(poses))
+        return scan(material, xyz, axis, nozzle, poses, *args)
+
+    monkeypatch.setattr(coll, "_holder_scan", counting_scan)
+    hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
+    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    assert np.array_equal(hit, exact) and 30 < hit.sum() < len(hit) - 100
+    for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
+        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+    # beside the hits (which no bound clears), most poses were cleared by an anchor
+    assert len(tested) == 2 and tested[1] <= hit.sum() + 0.25 * (len(tips) - hit.sum())
+    # the anchors' bound is a lower bound on the distance from the holder to the material, capped at the margin
+    material = coll._TreeSet()
+    material.add(pts)
+    h, l = np.zeros(len(tips), bool), np.full((len(tips), 3), np.nan)
+    bound = scan(material, tips, axes, NOZZLE, np.arange(len(tips)), h, l, 10**6, 5.0)
+    true = np.array([coll._holder_distance(pts - t, np.tile(a, (len(pts), 1)), NOZZLE).min() for t, a in zip(tips, axes)])
+    free = ~h
+    assert free.sum() > 100 and np.all(bound[free] <= true[free] + 1e-9) and np.all(bound[free] <= 5.0)
+    assert np.all(np.isneginf(bound[h])) and np.array_equal(h, true < 0)
+    assert np.mean(bound[free] > 0.5 * np.minimum(true[free], 5.0)) > 0.5   # and a useful one

@@ -117,3 +117,38 @@ def test_axes_beyond_the_b_range_are_turned_back_within_the_tilt_bound():
             plan_motion(unreachable, profile, platform_z=0.0)
     turned, _ = clamp_to_reach(tp, 100.0, 180.0)
     assert np.abs(plan_motion(turned, profile, platform_z=0.0).machine[:, 3]).max() <= 100.0 + 1e-9
+
+
+def test_the_platform_limit_is_the_exact_largest_tilt_and_the_clamp_clears_within_the_bound():
+    """platform_polar_limit against a brute-force scan of platform_clearance; clamp_to_platform turns only what
+    the bound allows, keeps the azimuth, and what it turned clears the platform exactly."""
+    from neuralslicer.motion.collision import platform_clearance
+    from neuralslicer.motion.reorient import clamp_to_platform, platform_polar_limit
+
+    rng = np.random.default_rng(3)
+    z = rng.uniform(0.05, 45.0, 400)
+    limit = platform_polar_limit(z, NOZZLE, platform_z=0.0, margin=0.0)
+    scan = np.radians(np.arange(0.0, 180.001, 0.05))
+    axes = np.column_stack([np.sin(scan), np.zeros_like(scan), np.cos(scan)])
+    low = platform_clearance(np.zeros((len(scan), 3)), axes, NOZZLE, 0.0)           # clearance of a tip at z = 0
+    ok = z[:, None] + low[None, :] >= 0
+    brute = np.degrees(scan[np.where(ok.all(axis=1), len(scan) - 1, np.argmax(~ok, axis=1) - 1)])
+    assert np.all(np.abs(np.minimum(limit, 180.0) - brute) <= 0.05 + 1e-9)
+    assert limit.min() < 30.0 and limit.max() >= 180.0           # tight low down, unbounded high up
+
+    polar = np.radians(np.array([20.0, 45.0, 45.0, 55.0, 70.0]))
+    phi = np.radians(np.array([0.0, 70.0, -30.0, 150.0, 250.0]))
+    axis = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi), np.cos(polar)])
+    xyz = np.column_stack([np.arange(5.0), np.zeros(5), np.array([1.0, 1.0, 30.0, 4.0, 0.5])])
+    n = len(xyz)
+    tp = Toolpaths(layer=np.zeros(n, np.int64), path=np.zeros(n, np.int64), xyz=xyz, axis=axis,
+                   thickness=np.full(n, 0.5), width=np.full(n, 0.5), extrude=np.ones(n, bool))
+    before = platform_clearance(tp.xyz, tp.axis, NOZZLE, 0.0)
+    need = np.degrees(polar) - platform_polar_limit(xyz[:, 2], NOZZLE, 0.0)
+    assert list(before < 0) == [False, True, False, True, True] and 0 < need[1] < 15 and 0 < need[3] < 15 < need[4]
+    out, summary = clamp_to_platform(tp, NOZZLE, platform_z=0.0, max_tilt_deg=15.0)
+    after = platform_clearance(out.xyz, out.axis, NOZZLE, 0.0)
+    assert summary["n_clamped"] == 2 and summary["n_unreachable"] == 1
+    assert np.all(after[[0, 1, 2, 3]] > 0) and after[4] < 0 and np.allclose(out.axis[[0, 2, 4]], axis[[0, 2, 4]])
+    assert np.allclose(np.arctan2(out.axis[:, 1], out.axis[:, 0]), np.arctan2(axis[:, 1], axis[:, 0]))
+    assert np.all(after[[1, 3]] < 0.05)                                     # turned just far enough

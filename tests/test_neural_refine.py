@@ -84,8 +84,8 @@ def test_refined_points_lie_in_the_solid_near_the_hits_within_the_cap(strut_pool
 def test_link_pairs_pair_the_added_points_along_the_links_within_the_budget(strut_pool):
     refined = refine_pool(strut_pool, HITS, WITNESSES, strut_H)
     n, pts, r = refined.n_base, refined.points, refined.link_radius
-    pairs, used = link_pairs(pts, n, refined.links, r, 30.0, 10**8)
-    assert used == len(refined.links) and len(pairs)
+    pairs, thinned = link_pairs(pts, n, refined.links, r, 30.0, 10**8)
+    assert thinned == 0 and len(pairs)
     assert np.all((pairs[:, 0] >= n) | (pairs[:, 1] >= n)) and np.all(pairs[:, 0] != pairs[:, 1])
     assert len(np.unique(pairs, axis=0)) == len(pairs)
     assert {tuple(p) for p in pairs} == {tuple(p) for p in pairs[:, ::-1]}   # both ways
@@ -94,11 +94,17 @@ def test_link_pairs_pair_the_added_points_along_the_links_within_the_budget(stru
     near_wit = np.flatnonzero(np.linalg.norm(pts - WITNESSES[0], axis=1) < 0.5 * r)
     want = {(p, x) for p in near_hit for x in near_wit if p != x and (p >= n or x >= n)}
     assert want and want <= {tuple(p) for p in pairs}
-    # the head's reach bounds them, the budget drops links
+    # the head's reach bounds them; under a budget every link keeps a share of its pairs
     short, _ = link_pairs(pts, n, refined.links, r, 1.0, 10**8)
     assert 0 < len(short) < len(pairs) and np.linalg.norm(pts[short[:, 0]] - pts[short[:, 1]], axis=1).max() <= 1.0
-    few, used_few = link_pairs(pts, n, refined.links, r, 30.0, len(pairs) // 4)
-    assert used_few < used and len(few) <= len(pairs) // 4
+    few, thinned = link_pairs(pts, n, refined.links, r, 30.0, len(pairs) // 4)
+    assert thinned > 0 and len(few) <= len(pairs) // 4 and {tuple(p) for p in few} <= {tuple(p) for p in pairs}
+    tree = cKDTree(pts)
+    for a, b in refined.links:
+        ia, ib = set(tree.query_ball_point(a, r)), set(tree.query_ball_point(b, r))
+        assert any(p in ia and x in ib for p, x in few), "a link lost all its pairs"
+    again, _ = link_pairs(pts, n, refined.links, r, 30.0, len(pairs) // 4)
+    np.testing.assert_array_equal(again, few)  # seeded: the same pool gives the same loss
     # HeadCollision: the base pairs as before plus the link pairs; normalised by the base pool
     V, T = box_tet_grid((4, 4, 4), np.zeros(3), np.full(3, 20.0))
     geometry = CageGeometry.build(V, T)
@@ -114,8 +120,8 @@ def test_link_pairs_pair_the_added_points_along_the_links_within_the_budget(stru
     near = both.near.numpy()
     base_near = near[(near < n).all(axis=1)]
     assert {tuple(p) for p in base_near} == {tuple(p) for p in base.near.numpy()}
-    assert len(near) == len(base.near) + both.n_link_pairs and both.links_used == len(refined.links)
-    with pytest.warns(RuntimeWarning, match="links left out"):
+    assert len(near) == len(base.near) + both.n_link_pairs and both.links_thinned == 0
+    with pytest.warns(RuntimeWarning, match="links thinned"):
         gc(pts, n_base=n, links=refined.links, link_radius=r, max_link_pairs=10)
     G = torch.from_numpy(V[:, 2] + 3.0 * np.sin(V[:, 0] / 2.0))
     grad = field_gradient(G, torch.from_numpy(geometry.tets), torch.from_numpy(geometry.bary_grads))

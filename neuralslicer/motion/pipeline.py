@@ -13,7 +13,7 @@ from neuralslicer.layers import LayerConfig
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.planning import MachineProgram, merge_short_moves, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
-from neuralslicer.motion.reorient import clamp_to_reach, tilt_away
+from neuralslicer.motion.reorient import clamp_to_platform, clamp_to_reach, tilt_away
 from neuralslicer.motion.travel import raise_travels
 from neuralslicer.toolpath.beads import bead_summary, hold_beads
 from neuralslicer.toolpath.config import ToolpathConfig
@@ -46,6 +46,8 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max)
     tp, beads = hold_beads(tp, profile.nozzle.bead_thickness_mm) if cfg.thin_beads == "carry" else (tp, None)
     tp, n_merged = merge_short_moves(tp, profile)
+    # near the platform a tilted head dips below it: turn those axes up first (exact, local), the check judges after
+    tp, platform = clamp_to_platform(tp, profile.nozzle, platform_z, cfg.collision_tilt_deg)
     t1 = time.perf_counter()
     report = check_collisions(tp, profile.nozzle, platform_z)
     t2 = time.perf_counter()
@@ -63,6 +65,7 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     metrics["travel_lift"] = lifted
     metrics["axis_tilt"] = tilt
     metrics["axis_reach"] = reach
+    metrics["axis_platform"] = platform
     metrics["n_merged_short_moves"] = n_merged
     metrics["beads"] = beads if beads is not None else bead_summary(tp, profile.nozzle.bead_thickness_mm)
     metrics["n_waypoints"] = len(tp)

@@ -143,20 +143,53 @@ def tilt_away(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z
                               np.asarray(tilt_deg, np.float64))
 
 
-def clamp_to_reach(tp: Toolpaths, max_polar_deg: float, max_tilt_deg: float) -> tuple[Toolpaths, dict]:
-    """Tool axes tipped further from +z than the machine's B range reaches (``max_polar_deg``) turned back
-    to that limit, azimuth kept, where that takes at most ``max_tilt_deg``; the others are left (and
-    reported as unreachable). The clamp is continuous in the axis, so paths stay smooth."""
+def _clamp_polar(tp: Toolpaths, limit_deg: FloatArray | float, max_tilt_deg: float) -> tuple[Toolpaths, dict]:
+    """Tool axes tipped further from +z than ``limit_deg`` (scalar or per waypoint) turned back to it, azimuth
+    kept, where that takes at most ``max_tilt_deg``; the others are left (counted in ``n_unreachable``)."""
     a = tp.axis
     beta = np.degrees(np.arccos(np.clip(a[:, 2], -1.0, 1.0)))
-    excess = beta - max_polar_deg
+    excess = beta - limit_deg
     fix = (excess > 1e-9) & (excess <= max_tilt_deg + 1e-9)
     summary = {"n_clamped": int(fix.sum()), "max_clamp_deg": float(excess[fix].max(initial=0.0)),
                "n_unreachable": int((excess > max_tilt_deg + 1e-9).sum())}
     if not fix.any():
         return tp, summary
     phi = np.arctan2(a[fix, 1], a[fix, 0])
-    polar = np.radians(max_polar_deg)
+    polar = np.radians(np.broadcast_to(np.asarray(limit_deg, np.float64), beta.shape)[fix])
     axis = a.copy()
-    axis[fix] = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi), np.full(len(phi), np.cos(polar))])
+    axis[fix] = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi), np.cos(polar)])
     return replace(tp, axis=axis, attrs=dict(tp.attrs)), summary
+
+
+def clamp_to_reach(tp: Toolpaths, max_polar_deg: float, max_tilt_deg: float) -> tuple[Toolpaths, dict]:
+    """Tool axes tipped further from +z than the machine's B range reaches (``max_polar_deg``) turned back
+    to that limit, azimuth kept, where that takes at most ``max_tilt_deg``; the others are left (and
+    reported as unreachable). The clamp is continuous in the axis, so paths stay smooth."""
+    return _clamp_polar(tp, max_polar_deg, max_tilt_deg)
+
+
+def platform_polar_limit(z: FloatArray, nozzle: Nozzle, platform_z: float, margin: float = 0.01) -> FloatArray:
+    """Largest angle (deg) of the tool axis from +z that keeps the whole head at least ``margin`` above the
+    platform, per tip height ``z`` (n,) (exact for the head ``platform_clearance`` measures; negative where
+    even a vertical head is too low). Each rim of the head (cone base, holder ends) lies ``a cos t - b sin t``
+    above the tip at tilt ``t``, a cosine falling on [0, pi - atan2(b, a)], so each gives one bound."""
+    room = np.asarray(z, np.float64) - platform_z - margin
+    L, R = nozzle.cone_length, nozzle.holder_radius
+    rims = [(L, L * np.tan(np.radians(nozzle.cone_half_angle_deg)))]
+    if nozzle.holder_length > 0:
+        rims += [(L, R), (L + nozzle.holder_length, R)]
+    limit = np.full(room.shape, np.pi)
+    for a, b in rims:
+        rho = np.hypot(a, b)          # a rim never lower than -rho below the tip: no bound where room >= rho
+        bound = np.arccos(np.clip(-room / rho, -1.0, 1.0)) - np.arctan2(b, a)
+        limit = np.minimum(limit, np.where(room >= rho, np.pi, bound))
+    return np.degrees(np.where(room >= 0, limit, -1.0))
+
+
+def clamp_to_platform(tp: Toolpaths, nozzle: Nozzle, platform_z: float, max_tilt_deg: float
+                      ) -> tuple[Toolpaths, dict]:
+    """Tool axes whose head dips below the platform turned up toward +z (azimuth kept) just far enough to clear
+    it (``platform_polar_limit``), where that takes at most ``max_tilt_deg``; the others are left for the
+    collision check to report. The limit grows with the tip's height, so the turned axes stay continuous
+    along a path."""
+    return _clamp_polar(tp, platform_polar_limit(tp.xyz[:, 2], nozzle, platform_z), max_tilt_deg)

@@ -98,6 +98,9 @@ class LossConfig(BaseModel):
     gc_floor: bool = Field(
         True, description="L_GC's platform term also at every cage tet with solid within the head's reach of the "
         "platform, at its lowest solid point along its LPD (the floor; off: at the pool's points only)")
+    gc_floor_weight: float = Field(
+        1.0, ge=0, description="weight of the floor's platform penalties within L_GC, relative to a pool cell of "
+        "solid (its penalties are quadratic, so a settled field's platform shortfall falls about as 1/weight)")
 
     correction_steps: int = Field(
         20, ge=0, description="max DC3 correction steps before one loss evaluation (stops when feasible)"
@@ -148,12 +151,17 @@ class RefineConfig(BaseModel):
     max_pairs: int = Field(
         10_000_000, ge=0,
         description="at most this many ordered pairs along the refinement's links (the ring's whole pool has "
-        "6.2 M); the links beyond are left out with a warning")
+        "6.2 M); beyond it every link keeps an equal share of them (a random subset of its points), with a warning")
     lr: float | None = Field(
         1e-4, gt=0,
         description="Adam learning rate of a warm-started run (None: optim.lr). A fresh Adam moves every weight by "
         "about lr per step whatever the gradient's scale: at 1e-3 a warm start leaves the optimum it starts from "
         "(the lattice's overhang went from 3.2 % to 6.2 % in 300 steps); 1e-4 keeps it close")
+    floor_weight_factor: float = Field(
+        3.0, ge=1,
+        description="a refinement after a print whose head still dips below the platform (beyond the planner's "
+        "turn, toolpath.collision_tilt_deg) multiplies loss.gc_floor_weight by this (the 200 mm bunny: weight 1 "
+        "left 9,962 such waypoints, 3 left 108, 10 none)")
     overhang_slack: float = Field(
         0.005, ge=0,
         description="a warm-started run's constraint stop accepts the overhang area fraction it started from plus "

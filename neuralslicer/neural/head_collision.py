@@ -280,38 +280,58 @@ def _lattice_points_near(centres: np.ndarray, existing: np.ndarray, H, spacing: 
 
 
 def link_pairs(points: np.ndarray, n_base: int, links: np.ndarray, radius: float, reach: float,
-               max_pairs: int) -> tuple[np.ndarray, int]:
-    """The ordered pairs of pool points (e,2) that a refined pool's links add, and how many links fit.
+               max_pairs: int, seed: int = 0) -> tuple[np.ndarray, int]:
+    """The ordered pairs of pool points (e,2) that a refined pool's links add, and how many links were thinned.
 
     For each link (a, b) of ``links`` (l,2,3): every pool point within ``radius`` of a with every pool point
     within ``radius`` of b, both ways, within ``reach`` of each other, distinct, and at least one of them an
-    added point (index >= ``n_base``: pairs of base points are the base query's). Links are taken in order
-    while the pairs so far (before removing duplicates) stay within ``max_pairs``.
+    added point (index >= ``n_base``: pairs of base points are the base query's). When all of them would be
+    more than ``max_pairs``, every link keeps a share: the candidate pairs (points near a times points near b)
+    are water-filled to a common cap, and a link above it keeps a seeded random subset of the points on each
+    side (the square root of its share), so each colliding site the exact check named stays in the loss.
     """
     empty = np.zeros((0, 2), np.int64)
     if not len(links) or n_base >= len(points):
-        return empty, len(links)
+        return empty, 0
     tree = cKDTree(points)
-    near_a = tree.query_ball_point(links[:, 0], radius)
-    near_b = tree.query_ball_point(links[:, 1], radius)
+    near_a = [np.asarray(i, np.int64) for i in tree.query_ball_point(links[:, 0], radius)]
+    near_b = [np.asarray(i, np.int64) for i in tree.query_ball_point(links[:, 1], radius)]
+    sizes = np.array([len(ia) * len(ib) for ia, ib in zip(near_a, near_b)], np.float64)
+    cap = _water_level(sizes, max_pairs / 2.0)
+    rng = np.random.default_rng(seed)
     out: list[np.ndarray] = []
-    total = used = 0
-    for ia, ib in zip(near_a, near_b):
-        ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
+    thinned = 0
+    for ia, ib, size in zip(near_a, near_b, sizes):
+        if size > cap:
+            keep = math.sqrt(cap / size)
+            ia = ia[rng.random(len(ia)) < keep]
+            ib = ib[rng.random(len(ib)) < keep]
+            thinned += 1
         p, x = np.repeat(ia, len(ib)), np.tile(ib, len(ia))
-        keep = ((p >= n_base) | (x >= n_base)) & (p != x)
-        p, x = p[keep], x[keep]
-        keep = ((points[p] - points[x]) ** 2).sum(axis=1) <= reach * reach
-        pairs = np.stack([p[keep], x[keep]], axis=1)
-        if total + 2 * len(pairs) > max_pairs:
-            break
+        keep_pair = ((p >= n_base) | (x >= n_base)) & (p != x)
+        p, x = p[keep_pair], x[keep_pair]
+        keep_pair = ((points[p] - points[x]) ** 2).sum(axis=1) <= reach * reach
+        pairs = np.stack([p[keep_pair], x[keep_pair]], axis=1)
         out += [pairs, pairs[:, ::-1]]
-        total += 2 * len(pairs)
-        used += 1
-    if not total:
-        return empty, used
-    code = np.unique(np.concatenate(out) @ np.array([len(points), 1], np.int64))
-    return np.stack([code // len(points), code % len(points)], axis=1), used
+    pairs = np.concatenate(out)
+    if not len(pairs):
+        return empty, thinned
+    code = np.unique(pairs @ np.array([len(points), 1], np.int64))
+    pairs = np.stack([code // len(points), code % len(points)], axis=1)
+    if len(pairs) > max_pairs:  # the random subsets' sizes may overshoot their mean by a little
+        pairs = pairs[np.sort(rng.choice(len(pairs), max_pairs, replace=False))]
+    return pairs, thinned
+
+
+def _water_level(sizes: np.ndarray, budget: float) -> float:
+    """The cap c with sum(min(sizes, c)) = budget (inf when all of sizes fit in the budget)."""
+    if sizes.sum() <= budget:
+        return math.inf
+    s = np.sort(sizes)
+    below = np.concatenate([[0.0], np.cumsum(s)[:-1]])  # sum of the sizes under each
+    levels = (budget - below) / (len(s) - np.arange(len(s)))  # cap if the first i sizes fit whole
+    i = int(np.flatnonzero(levels <= s)[0])
+    return float(levels[i])
 
 
 class HeadCollision:
@@ -331,18 +351,19 @@ class HeadCollision:
                  head: HeadShape, platform_z: float | None, clearance: float, lift: float,
                  length: float, margin: float, device: torch.device, dtype: torch.dtype, *,
                  n_base: int | None = None, links: np.ndarray | None = None, link_radius: float = 0.0,
-                 max_link_pairs: int = 10_000_000, floor: FloorTets | None = None) -> None:
+                 max_link_pairs: int = 10_000_000, floor: FloorTets | None = None,
+                 floor_weight: float = 1.0) -> None:
         self.points = np.asarray(points, np.float64)
         self.n_base = len(self.points) if n_base is None else int(n_base)
         reach = head.reach + clearance + lift + margin
         near = cKDTree(self.points[:self.n_base]).query_pairs(reach, output_type="ndarray")
         near = np.concatenate([near, near[:, ::-1]])
         links = np.zeros((0, 2, 3)) if links is None else np.asarray(links, np.float64).reshape(-1, 2, 3)
-        extra, self.links_used = link_pairs(self.points, self.n_base, links, link_radius, reach, max_link_pairs)
+        extra, self.links_thinned = link_pairs(self.points, self.n_base, links, link_radius, reach, max_link_pairs)
         self.n_links, self.n_link_pairs = len(links), len(extra)
-        if self.links_used < len(links):
-            warnings.warn(f"L_GC refinement: {len(links) - self.links_used} of {len(links)} links left out "
-                          f"(more than {max_link_pairs} pairs)", RuntimeWarning, stacklevel=2)
+        if self.links_thinned:
+            warnings.warn(f"L_GC refinement: {self.links_thinned} of {len(links)} links thinned to a share of "
+                          f"{max_link_pairs} pairs", RuntimeWarning, stacklevel=2)
         self.near = torch.as_tensor(np.concatenate([near, extra]), device=device)
         self.head, self.platform_z = head, platform_z
         self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
@@ -359,7 +380,7 @@ class HeadCollision:
         self.n_floor = len(floor.tets)
         self.floor_tets = torch.as_tensor(floor.tets, device=device)
         self.floor_z = torch.as_tensor(floor.z_low - (platform_z or 0.0), dtype=dtype, device=device)
-        self.floor_weights = torch.as_tensor(floor.volumes / length ** 3, dtype=dtype, device=device)
+        self.floor_weights = torch.as_tensor(floor_weight * floor.volumes / length ** 3, dtype=dtype, device=device)
         self.floor_clearance = min(self.platform_clearance, FLOOR_CLEARANCE)
 
     def __len__(self) -> int:

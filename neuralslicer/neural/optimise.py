@@ -653,7 +653,7 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
     if head:
         final["gc_colliding_pairs"] = float(head["colliding_pairs"])
         head.update(weight=problem.config.loss.w_gc, spacing=problem.head.length, clearance=problem.head.clearance,
-                    links=problem.head.n_links, links_used=problem.head.links_used,
+                    links=problem.head.n_links, links_thinned=problem.head.links_thinned,
                     link_pairs=problem.head.n_link_pairs)
     return FieldResult(
         deformed_vertices=V, G=G, lpd=lpd, quaternions=q.double().cpu().numpy(),

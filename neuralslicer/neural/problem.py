@@ -107,7 +107,8 @@ class FieldProblem:
         return HeadCollision(pool.points, tet, bary, self.geometry.tets, head, self.platform_z, clearance,
                              cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype,
                              n_base=pool.n_base, links=pool.links, link_radius=pool.link_radius,
-                             max_link_pairs=self.config.optim.refine.max_pairs, floor=floor)
+                             max_link_pairs=self.config.optim.refine.max_pairs, floor=floor,
+                             floor_weight=cl.gc_floor_weight)
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
         """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
