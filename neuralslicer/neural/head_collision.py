@@ -362,8 +362,9 @@ class HeadCollision:
         extra, self.links_thinned = link_pairs(self.points, self.n_base, links, link_radius, reach, max_link_pairs)
         self.n_links, self.n_link_pairs = len(links), len(extra)
         if self.links_thinned:
-            warnings.warn(f"L_GC refinement: {self.links_thinned} of {len(links)} links thinned to a share of "
-                          f"{max_link_pairs} pairs", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"L_GC refinement: {self.links_thinned:,} of {len(links):,} links thinned to a random "
+                          f"share of their pairs (refine.max_pairs = {max_link_pairs:,} in all)",
+                          RuntimeWarning, stacklevel=2)
         self.near = torch.as_tensor(np.concatenate([near, extra]), device=device)
         self.head, self.platform_z = head, platform_z
         self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
