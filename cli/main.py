@@ -36,7 +36,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
     out_dir = Path(args.out).resolve()
     store = str(args.store or out_dir / "store.zarr")
     solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
-    needs_fea = config.verify or "sr" in config.objectives_for(spec)
+    needs_fea = config.needs_fea(spec)
     preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea)
     return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args, api))
 

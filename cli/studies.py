@@ -31,7 +31,7 @@ def check_model(model: Path, args: argparse.Namespace, config: Any, out_dir: Pat
     spec = spec_for_file(model, args.up or "z", getattr(args, "units", None) or "mm")
     solid = implicit_solid(spec)
     preflight(spec, solid, config, out_dir, store, force=getattr(args, "force", False),
-              needs_fea=config.verify or "sr" in config.objectives_for(spec))
+              needs_fea=config.needs_fea(spec))
 
 
 def cmd_study(args: argparse.Namespace) -> int:

@@ -5,7 +5,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from prefect import flow, get_run_logger
 from prefect.states import State
@@ -15,7 +15,7 @@ from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
 from neuralslicer.scalar_field import smallest_clean_blend
-from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.motion.profile import load_profile
 from flows.settings import artifact_key
 from storage import ArtifactRef, ArtifactStore, write_json_atomic
 from tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
@@ -65,7 +65,7 @@ def firmer_floor(config: NeuralConfig, factor: float) -> NeuralConfig:
 
 def blend_until_collision_free(
     log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef, config: SliceConfig,
-    machine: MachineProfile, attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
+    print_layers: Callable[[ArtifactRef], ArtifactRef], attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
 ) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
     """The smallest blend t of the field toward planar layers ((1-t) G + t z) whose print is collision-free
     (`smallest_clean_blend`, `collision_blend_steps` bisection steps; planar layers when no smaller t is).
@@ -75,7 +75,7 @@ def blend_until_collision_free(
 
     def collisions(t: float) -> int:
         """Print the blend t and count its collisions."""
-        prints[t] = _blended_print(log, store, model, cage, field_ref, config, machine, t)
+        prints[t] = _blended_print(log, store, model, cage, field_ref, config, print_layers, t)
         n = n_collisions(prints[t][2])
         label = "planar blend t = 1 (planar layers)" if t == 1.0 else f"planar blend t = {t:.4g}"
         attempts.append((label, prints[t][0], prints[t][2]))
@@ -89,13 +89,12 @@ def blend_until_collision_free(
 
 
 def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, field_ref: ArtifactRef,
-                   config: SliceConfig, machine: MachineProfile, t: float) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
+                   config: SliceConfig, print_layers: Callable[[ArtifactRef], ArtifactRef], t: float
+                   ) -> tuple[ArtifactRef, ArtifactRef, ArtifactRef]:
     """Blend, layers and print for one blend weight t."""
     blended = log.run(field_blend_task, store=store, cage=cage, field=field_ref, planar=t)
     layers = log.run(layers_task, store=store, model=model, cage=cage, field=blended, config=config.layers)
-    printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
-                       machine=machine, t_max=config.layers.t_max)
-    return blended, layers, printing
+    return blended, layers, print_layers(layers)
 
 
 @dataclass
@@ -127,12 +126,19 @@ def slice_pipeline(
     samples = log.run(samples_task, store=store, model=model, config=config.samples)
     cage = log.run(cage_task, store=store, model=model, samples=samples, config=config.cage)
     fea = stress = verify = None
-    if "sr" in objectives or config.verify:
+    if config.needs_fea(spec):
         fea = log.run(fea_task, store=store, model=model)
     if "sr" in objectives:
         stress = log.run(stress_samples_task, store=store, model=model, fea=fea)
     user = store_user_field(store, name, user_field) if user_field else None
     machine = load_profile(config.machine)
+    toolpath = config.toolpath_for(spec)
+
+    def print_layers(layers: ArtifactRef) -> ArtifactRef:
+        """The toolpaths and program of these layers (the infill following the FEA's stress when asked)."""
+        return log.run(toolpaths_task, store=store, model=model, layers=layers, config=toolpath, machine=machine,
+                       t_max=config.layers.t_max, fea=fea if toolpath.infill == "stress" else None)
+
     neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width)
     # every field printed on the way to a collision-free program: (label, field, print)
     attempts: list[tuple[str, ArtifactRef, ArtifactRef]] = []
@@ -147,8 +153,7 @@ def slice_pipeline(
             field_ref = log.run(field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
                                 objectives=objectives, config=neural, user_field=user, **refine)
         layers = log.run(layers_task, store=store, model=model, cage=cage, field=field_ref, config=config.layers)
-        printing = log.run(toolpaths_task, store=store, model=model, layers=layers, config=config.toolpath,
-                           machine=machine, t_max=config.layers.t_max)
+        printing = print_layers(layers)
         attempts.append((label, field_ref, printing))
         collisions = n_collisions(printing)
         if collisions == 0 or not objectives or config.method == "s3":
@@ -178,12 +183,12 @@ def slice_pipeline(
         get_run_logger().warning("%d nozzle collisions: re-optimising with harmonic weights x%g", collisions,
                                  config.collision_smoothness_factor ** smoothing)
     if collisions and objectives and config.collision_fallback == "blend":
-        field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config, machine,
-                                                                 attempts)
+        field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config,
+                                                                 print_layers, attempts)
     if config.verify:
         printed = None if config.verify_tangents == "ideal" else printing
         verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref, printing=printed,
-                         layer_config=config.layers, toolpath_config=config.toolpath)
+                         layer_config=config.layers, toolpath_config=toolpath)
     log.run(
         export_task, store=store, out_dir=out_dir, model=model, solid=solid, samples=samples, cage=cage,
         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,

@@ -70,6 +70,15 @@ class SliceConfig(BaseModel):
             return list(self.objectives)
         return ["sf", "po", "gc", "ca"] + (["sr"] if spec.fea is not None else [])
 
+    def toolpath_for(self, spec: ModelSpec) -> ToolpathConfig:
+        """The toolpath settings of this slice, ``infill: auto`` decided: stress-following when the spec has a load
+        case and ``sr`` is among the objectives, else zig-zag."""
+        return self.toolpath.resolved(spec.fea is not None and "sr" in self.objectives_for(spec))
+
+    def needs_fea(self, spec: ModelSpec) -> bool:
+        """Whether this slice runs the spec's FEA: for the sr objective, for --verify or for stress-following infill."""
+        return self.verify or "sr" in self.objectives_for(spec) or self.toolpath_for(spec).infill == "stress"
+
     @classmethod
     def from_yaml(cls, path: str | Path) -> SliceConfig:
         """Load a configuration file; errors name the file and the key."""

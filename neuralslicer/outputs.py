@@ -20,6 +20,7 @@ import trimesh
 
 from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
+from neuralslicer.fea.verify import PART_FIGURES, strain_gains
 from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
@@ -28,8 +29,8 @@ from neuralslicer.metrics import (heldout_surface_samples, layer_lpd_at, overhan
                                   strength_satisfaction, support_angles)
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
-                                 plot_layers_3d, plot_learning_curves, plot_overhang_map, plot_strain_histogram,
-                                 plot_thickness_map)
+                                 plot_filament_angles, plot_layers_3d, plot_learning_curves, plot_overhang_map,
+                                 plot_strain_histogram, plot_strain_maps, plot_thickness_map)
 from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
@@ -187,8 +188,10 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
         metrics["sr.satisfied_fraction_planar"] = strength_satisfaction(
             T.tau_max, T.volumes, np.tile(PLANAR, (len(T.points), 1)), beta_deg)
     if run.verify is not None:
-        metrics.update({f"fea.{k}": v for k, v in run.verify[1].items() if k.startswith(("max_strain", "tangent"))})
+        metrics.update(verify_metrics(run.verify[1]))
     metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
+    if "stress_infill_fraction" in run.toolpaths.attrs:
+        metrics["toolpath.stress_infill_fraction"] = run.toolpaths.attrs["stress_infill_fraction"]
     metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
     metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
@@ -224,11 +227,7 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
         )
         figures["Strength angle histogram"] = "figures/sr_histogram.png"
     if run.verify is not None:
-        strains = run.verify[0]
-        plot_strain_histogram(figs / "strain_histogram.png", {"planar": strains["strain_planar"],
-                                                             "computed": strains["strain"]})
-        how = run.verify[1].get("tangent", "ideal: tau_max projected onto the layer")
-        figures[f"Strain of the printed part (transversely isotropic FEA; filaments: {how})"] = "figures/strain_histogram.png"
+        figures.update(draw_strength_figures(figs, *run.verify))
     if run.field_history:
         plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
         figures["Learning curves"] = "figures/learning_curves.png"
@@ -245,6 +244,59 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
     return figures
 
 
+def verify_metrics(figures: dict[str, Any]) -> dict[str, Any]:
+    """``fea.<part>.<figure>`` of every verified part, the gains, and the printed part's figures as ``fea.<figure>``."""
+    out: dict[str, Any] = {}
+    for part in figures.get("parts", []):
+        for fig in (*PART_FIGURES, "tangent", "label"):
+            if f"{part}.{fig}" in figures:
+                out[f"fea.{part}.{fig}"] = figures[f"{part}.{fig}"]
+    out.update({f"fea.{fig}": figures[f"printed.{fig}"] for fig in PART_FIGURES if f"printed.{fig}" in figures})
+    out.update({f"fea.{k}": v for k, v in figures.items() if k.startswith("gain.")})
+    return out
+
+
+def draw_strength_figures(figs: Path, arrays: dict[str, np.ndarray], figures: dict[str, Any]) -> dict[str, str]:
+    """The verified parts side by side: strain histograms, strain maps on one scale, filament-to-tau_max angles."""
+    parts = figures.get("parts", [])
+    labels = {p: figures.get(f"{p}.label", p) for p in parts}
+    strains = {labels[p]: arrays[f"strain/{p}"] for p in parts}
+    out = {}
+    plot_strain_histogram(figs / "strain_histogram.png", strains)
+    out["Strain of the printed parts (transversely isotropic FEA, filaments along each part's toolpaths)"] = \
+        "figures/strain_histogram.png"
+    plot_strain_maps(figs / "strain_maps.png", arrays["centres"], strains, float(figures.get("voxel_size_mm", 1.0)))
+    out["Strain maps of the printed parts (one colour scale)"] = "figures/strain_maps.png"
+    angles = {labels[p]: (arrays[f"angles/{p}"], arrays[f"angle_weights/{p}"]) for p in parts if f"angles/{p}" in arrays}
+    if angles:
+        plot_filament_angles(figs / "filament_angles.png", angles)
+        out["Filaments against tau_max in the most stressed 10 % (red: within 20°)"] = "figures/filament_angles.png"
+    return out
+
+
+def strength_table(figures: dict[str, Any]) -> str:
+    """Markdown table of the verified parts and what the filaments and the layers each earn."""
+    lines = ["| part | max strain | 99th percentile | max displacement | filament length within 20° of tau_max "
+             "(top 10 % stress) |", "| --- | --- | --- | --- | --- |"]
+    for p in figures.get("parts", []):
+        share = figures.get(f"{p}.aligned_fraction")
+        lines.append(f"| {figures.get(f'{p}.label', p)} | {figures[f'{p}.max_strain']:.4g} | "
+                     f"{figures[f'{p}.max_strain_p99']:.4g} | {figures[f'{p}.max_displacement_mm']:.4g} mm | "
+                     f"{'-' if share is None else f'{100 * share:.1f} %'} |")
+    gains = strain_gains(figures)
+    if "gain.total.max_strain" in gains:
+        def pct(key: str) -> str:
+            """A gain as the signed change of strain."""
+            return f"{-100 * gains[key]:+.1f} %".replace("-", "−")
+
+        lines += ["", f"Against planar layers with zig-zag infill, the printed part's strain changes by "
+                  f"{pct('gain.total.max_strain')} (max) and {pct('gain.total.max_strain_p99')} (99th percentile): "
+                  f"the stress-following filaments on planar layers account for {pct('gain.filaments.max_strain')} / "
+                  f"{pct('gain.filaments.max_strain_p99')}, the printed layers and their toolpaths against planar "
+                  f"layers with the same infill for {pct('gain.layers.max_strain')} / {pct('gain.layers.max_strain_p99')}."]
+    return "\n".join(lines)
+
+
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
                   ) -> dict[str, Any]:
     """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, figures, metrics.json and
@@ -258,6 +310,8 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     metrics = run_metrics(run, alpha_deg, beta_deg)
     figures = draw_figures(d / "figures", run, alpha_deg, beta_deg)
     sections = {}
+    if run.verify is not None and run.verify[1].get("parts"):
+        sections["Strength of the printed part"] = strength_table(run.verify[1])
     if run.attempts:
         rows = collision_resolution(run.samples, run.attempts, alpha_deg)
         for i, row in enumerate(rows):

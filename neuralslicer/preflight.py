@@ -124,5 +124,6 @@ def preflight(spec: ModelSpec, solid: Solid, config: SliceConfig, out_dir: Path,
                          f"nozzle of {machine.name} lays ({lo:g}..{hi:g} mm, nozzle.bead_width_mm in the profile)")
     if needs_fea:
         if spec.fea is None:
-            raise InputError(spec.source or "model", "strength (sr) or --verify needs the spec's 'fea' block")
+            raise InputError(spec.source or "model", "strength (sr), --verify and toolpath.infill: stress need the "
+                             "spec's 'fea' block (supports and loads)")
         check_fea_regions(solid, spec.fea)

@@ -91,6 +91,52 @@ def plot_strain_histogram(path: Path, strains: dict[str, np.ndarray]) -> None:
     _save(fig, path)
 
 
+def plot_strain_maps(path: Path, centres: np.ndarray, strains: dict[str, np.ndarray], spacing: float) -> None:
+    """One map per part of the per-voxel max |principal strain| (n,) at voxel centres (n, 3), on one colour scale:
+    the largest strain along the horizontal axis of least extent (x or y), seen across it; + marks each maximum."""
+    axis = 0 if np.ptp(centres[:, 0]) <= np.ptp(centres[:, 1]) else 1
+    u = 1 - axis
+    lo = centres.min(axis=0)
+    iu = np.rint((centres[:, u] - lo[u]) / spacing).astype(np.int64)
+    iz = np.rint((centres[:, 2] - lo[2]) / spacing).astype(np.int64)
+    top = max(float(np.max(s)) for s in strains.values())
+    n = len(strains)
+    fig, axes = plt.subplots(1, n, figsize=(4.8 * n, 4.4), squeeze=False)
+    extent = (lo[u] - spacing / 2, lo[u] + (iu.max() + 0.5) * spacing, lo[2] - spacing / 2, lo[2] + (iz.max() + 0.5) * spacing)
+    for ax, (label, s) in zip(axes[0], strains.items()):
+        img = np.full((iz.max() + 1, iu.max() + 1), np.nan)
+        flat = np.full(img.size, -np.inf)
+        np.maximum.at(flat, iz * img.shape[1] + iu, s)
+        img = np.where(np.isfinite(flat), flat, np.nan).reshape(img.shape)
+        im = ax.imshow(img, origin="lower", extent=extent, cmap="inferno", vmin=0.0, vmax=top, interpolation="nearest")
+        k = int(np.argmax(s))
+        ax.plot(centres[k, u], centres[k, 2], "+", color="cyan", markersize=12, markeredgewidth=2)
+        ax.set_title(f"{label}\nmax {np.max(s):.3g}, p99 {np.percentile(s, 99):.3g}", fontsize=9)
+        ax.set_xlabel(f"{'xy'[u]} (mm)")
+        ax.set_ylabel("z (mm)")
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.85, label="max |principal strain| (largest across the part)")
+    fig.suptitle(f"strain of the printed parts, seen along {'xy'[axis]} (one colour scale)")
+    _save(fig, path)
+
+
+def plot_filament_angles(path: Path, angles: dict[str, tuple[np.ndarray, np.ndarray]], band_deg: float = 20.0) -> None:
+    """Per part, the histogram of the angle between the printed filaments and tau_max projected onto the layer in the
+    most stressed region, weighted by filament length (angles (k,), lengths (k,)); the band of aligned filaments red."""
+    n = max(len(angles), 1)
+    fig, axes = plt.subplots(n, 1, figsize=(7, 2.2 * n + 0.6), sharex=True, squeeze=False)
+    bins = np.linspace(0.0, 90.0, 19)
+    for ax, (label, (a, w)) in zip(axes[:, 0], angles.items()):
+        total = float(np.sum(w))
+        ax.axvspan(0.0, band_deg, color="red", alpha=0.15)
+        if total > 0:
+            ax.hist(a, bins=bins, weights=w / total * 100, color="tab:blue")
+        share = float(np.sum(w[a <= band_deg]) / total) if total > 0 else 0.0
+        ax.set_title(f"{label}: {100 * share:.1f} % of the length within {band_deg:g}°", fontsize=9)
+        ax.set_ylabel("% of length")
+    axes[-1, 0].set_xlabel("angle between filament and tau_max projected onto the layer (°), top-stress region")
+    _save(fig, path)
+
+
 def plot_learning_curves(path: Path, curves: dict[str, dict[str, np.ndarray]]) -> None:
     """Loss terms per step (log scale) for one or several runs."""
     fig, ax = plt.subplots(figsize=(7, 4))

@@ -31,9 +31,9 @@ STEP_VERSIONS = {
     "field_s3": "1",
     "field_blend": "1",
     "layers": "5",
-    "toolpaths": "9",
-    "verify": "2",
-    "export": "3",
+    "toolpaths": "10",
+    "verify": "3",
+    "export": "4",
 }
 
 

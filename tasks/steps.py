@@ -8,6 +8,7 @@ from prefect import get_run_logger
 from neuralslicer.baselines.s3 import S3Config, optimise_s3
 from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
+from neuralslicer.fea.samples import stress_field
 from neuralslicer.layers import LayerConfig, slice_layers
 from neuralslicer.model.solid import implicit_solid
 from neuralslicer.model.spec import ModelSpec
@@ -20,8 +21,8 @@ from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
 from storage.content_cache import ContentCache, cache_root
-from tasks.codec import (encode_print, read, read_cage, read_field, read_field_history, read_layers,
-                         read_part_collisions, read_samples, read_solid, read_stress, read_user_field)
+from tasks.codec import (encode_print, read, read_cage, read_fea, read_fea_spec, read_field, read_field_history,
+                         read_layers, read_part_collisions, read_samples, read_solid, read_stress, read_user_field)
 from tasks.common import pipeline_task
 from tasks.optimise import run_optimisation
 from tasks.progress import Progress, say
@@ -134,10 +135,13 @@ def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifact
 
 @pipeline_task("toolpaths")
 def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig,
-                   machine: MachineProfile, t_max: float) -> tuple[dict, dict]:
-    """Toolpaths on every layer, the machine program (IK, extrusion, collisions) and their metrics."""
+                   machine: MachineProfile, t_max: float, fea: ArtifactRef | None = None) -> tuple[dict, dict]:
+    """Toolpaths on every layer, the machine program (IK, extrusion, collisions) and their metrics; with ``fea``
+    the infill can follow its stress."""
     solid = read_solid(model)
+    stress = stress_field(read_fea(fea), read_fea_spec(model).top_fraction) if fea is not None else None
     tp, program, metrics, collisions = plan_print(read_layers(layers).meshes, platform_z=solid.platform_z,
-                                                  solid_H=solid.H, toolpath_cfg=config, profile=machine, t_max=t_max)
+                                                  solid_H=solid.H, toolpath_cfg=config, profile=machine, t_max=t_max,
+                                                  stress=stress)
     get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("collisions", 0))
     return encode_print(tp, program, metrics, collisions)

@@ -114,20 +114,69 @@ def test_printed_toolpaths_set_the_stiff_axis_where_the_ideal_one_would_flatter(
     assert ideal["max_strain"] == pytest.approx(SIGMA / Y1, rel=0.02)
 
 
-def test_verify_field_labels_its_tangents() -> None:
-    """verify_field says which stiff axis each part got: printed toolpaths for the field, ideal for planar."""
+def _field_z():
+    """The height field G = z on a cage around the 40 x 10 x 10 bar: planar layers."""
     from scipy.spatial import Delaunay
 
-    from neuralslicer.fea.verify import verify_field
     from neuralslicer.scalar_field import ScalarField
 
     g = np.stack(np.meshgrid(np.linspace(-1, 41, 8), np.linspace(-1, 11, 4), np.linspace(-1, 11, 4), indexing="ij"), -1)
     verts = g.reshape(-1, 3) + np.random.default_rng(0).normal(scale=1e-3, size=(g.size // 3, 3))   # no flat tets
-    field = ScalarField(verts, Delaunay(verts).simplices.astype(np.int64), verts[:, 2].copy())
+    return ScalarField(verts, Delaunay(verts).simplices.astype(np.int64), verts[:, 2].copy())
+
+
+def test_verify_field_is_the_ideal_best_case_for_both_parts() -> None:
+    """verify_field (verify_tangents: ideal) gives planar layers and the field's layers tau_max as stiff axis: an
+    x-loaded bar with planar layers strains sigma / Y1 in both, and the parts say how they were verified."""
+    from neuralslicer.fea.verify import verify_field
+
+    strains, figures = verify_field(BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec(), _field_z())
+    assert figures["parts"] == ["planar", "printed"]
+    for part in figures["parts"]:
+        assert figures[f"{part}.tangent"].startswith("ideal")
+        assert figures[f"{part}.max_strain"] == pytest.approx(SIGMA / Y1, rel=0.02)
+        assert strains[f"strain/{part}"].shape == strains["centres"][:, 0].shape
+
+
+def test_a_part_printed_across_the_load_has_none_of_its_filaments_aligned() -> None:
+    """The printed part of lines along y in the x-loaded bar: strain sigma / Y2 and 0 % of the filament length within
+    20 degrees of tau_max (x); the same lines turned to x: sigma / Y1 and 100 %."""
+    from neuralslicer.fea import run_fea
+    from neuralslicer.fea.verify import _part
+
     solid, spec = BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec()
-    strains, figures = verify_field(solid, spec, field, toolpaths=_lines_along_y())
-    assert figures["tangent"] == "printed toolpaths" and "best case for planar" in figures["tangent_planar"]
-    assert figures["max_strain"] == pytest.approx(SIGMA / Y2, rel=0.02)          # printed across the load
-    assert figures["max_strain_planar"] == pytest.approx(SIGMA / Y1, rel=0.02)   # planar at its best
-    _, ideal = verify_field(solid, spec, field)
-    assert ideal["tangent"].startswith("ideal") and ideal["max_strain"] == pytest.approx(SIGMA / Y1, rel=0.02)
+    reference = run_fea(solid, spec)
+    across = _lines_along_y()
+    arrays, figures = _part(solid, spec, _const((0, 0, 1)), across, reference)
+    assert figures["max_strain"] == pytest.approx(SIGMA / Y2, rel=0.02)
+    assert figures["aligned_fraction"] == 0.0 and np.allclose(arrays["angles"], 90.0, atol=1e-6)
+    along = _lines_along_y()
+    along.xyz = along.xyz[:, [1, 0, 2]] * [4.0, 0.25, 1.0]          # the same rows of lines, turned along x
+    arrays, figures = _part(solid, spec, _const((0, 0, 1)), along, reference)
+    assert figures["max_strain"] == pytest.approx(SIGMA / Y1, rel=0.05)
+    assert figures["aligned_fraction"] == 1.0
+
+
+def test_filament_alignment_weighs_filaments_by_length() -> None:
+    """Hand-made filaments in the x-loaded bar (tau_max = x everywhere, every voxel counted): 10 mm at 0°, 5 mm at 15°,
+    8 mm at 30° and 5 mm at 90°: 15 of the 28 mm lie within 20° of tau_max."""
+    from neuralslicer.fea import run_fea
+    from neuralslicer.fea.verify import filament_alignment
+    from neuralslicer.toolpath.types import Toolpaths
+
+    solid, spec = BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec()
+    reference = run_fea(solid, spec)
+    lines = [((5.0, 2.0), 0.0, 10.0), ((5.0, 4.0), 15.0, 5.0), ((20.0, 1.0), 30.0, 8.0), ((32.0, 2.0), 90.0, 5.0)]
+    rows = []
+    for (x, y), angle, length in lines:
+        d = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle)), 0.0])
+        rows.append(np.array([x, y, 5.0]) + np.linspace(0.0, length, 11)[:, None] * d)
+    xyz = np.concatenate(rows)
+    n = len(xyz)
+    tp = Toolpaths(layer=np.zeros(n, np.int64), path=np.repeat(np.arange(4), 11), xyz=xyz,
+                   axis=np.tile([0.0, 0.0, 1.0], (n, 1)), thickness=np.ones(n), width=np.ones(n),
+                   extrude=np.tile(np.r_[False, np.ones(10, bool)], 4))
+    out = filament_alignment(tp, reference, top_fraction=1.0)
+    assert np.allclose(np.sort(out["angles_deg"]), np.repeat([0.0, 15.0, 30.0, 90.0], 10), atol=0.5)
+    assert out["lengths"].sum() == pytest.approx(28.0)
+    assert out["aligned_fraction"] == pytest.approx(15.0 / 28.0, rel=1e-6)

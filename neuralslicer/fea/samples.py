@@ -8,6 +8,7 @@ import numpy as np
 
 from neuralslicer.errors import InputError
 from neuralslicer.fea.solver import FEAResult
+from neuralslicer.stress_field import StressField
 
 
 @dataclass
@@ -44,14 +45,29 @@ class StressSamples:
 
 def stress_samples(result: FEAResult, fraction: float = 0.10) -> StressSamples:
     """T = voxel centres in the top ``fraction`` of |max principal stress|, weight = voxel volume."""
+    idx = top_stress_indices(result, fraction)
+    return StressSamples(points=result.grid.centres[idx],
+                         volumes=np.full(len(idx), result.grid.voxel_volume),
+                         tau_max=result.tau_max[idx].copy(),
+                         stress=result.max_principal[idx].copy())
+
+
+def stress_field(result: FEAResult, fraction: float = 0.10) -> StressField:
+    """The FEA's stress at any point (stress-following infill); its reference magnitude is the threshold of T
+    (the smallest |max principal stress| among the samples T)."""
+    idx = top_stress_indices(result, fraction)
+    g = result.grid
+    return StressField(np.asarray(g.origin, np.float64), float(g.spacing), np.asarray(g.ijk, np.int64), result.stress,
+                       float(abs(result.max_principal[idx[-1]])))
+
+
+def top_stress_indices(result: FEAResult, fraction: float = 0.10) -> np.ndarray:
+    """The voxels (k,) int64 in the top ``fraction`` of |max principal stress| (the region of T), by decreasing
+    |stress|."""
     if not 0.0 < fraction <= 1.0:
         raise InputError("fea.top_fraction", f"must be in (0, 1], got {fraction}")
     mag = np.abs(result.max_principal)
     n = mag.size
     k = max(1, math.ceil(fraction * n - 1e-9))
     idx = np.argpartition(-mag, k - 1)[:k] if k < n else np.arange(n)
-    idx = idx[np.argsort(-mag[idx], kind="stable")]
-    return StressSamples(points=result.grid.centres[idx],
-                         volumes=np.full(k, result.grid.voxel_volume),
-                         tau_max=result.tau_max[idx].copy(),
-                         stress=result.max_principal[idx].copy())
+    return idx[np.argsort(-mag[idx], kind="stable")]

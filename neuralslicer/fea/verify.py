@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from neuralslicer.errors import InputError
 from neuralslicer.fea.element import rotate_D, transversely_isotropic_D
 from neuralslicer.fea.grid import SolidLike, voxelize
+from neuralslicer.fea.samples import stress_field, top_stress_indices
 from neuralslicer.fea.solver import FEAResult, run_fea, solve_on_grid
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import LayerConfig, slice_layers
@@ -122,16 +123,50 @@ def printed_tangents(tp: Toolpaths) -> DirectionField:
     return tangent_at
 
 
-def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, reference: FEAResult | None = None,
-                 toolpaths: Toolpaths | None = None, planar_toolpaths: Toolpaths | None = None
-                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """Strain of the part printed with planar layers and with the layers of ``field`` (its LPD; planar
-    where a voxel centre lies outside the cage): per-voxel strains and their maxima and 99th percentiles.
+def filament_alignment(tp: Toolpaths, reference: FEAResult, top_fraction: float = 0.10, band_deg: float = 20.0
+                       ) -> dict[str, Any]:
+    """How the printed filaments lie against the load: for every printing move whose midpoint is in a voxel of the
+    top ``top_fraction`` of |max principal stress| (the region of T), the angle between the move and tau_max
+    projected onto the layer (the plane normal to the tool axis); 90° where tau_max crosses the layer (its
+    projection shorter than 1e-3). Returns ``angles_deg`` (k,), ``lengths`` (k,) mm and ``aligned_fraction``: the
+    share of that filament length within ``band_deg`` of the projected tau_max."""
+    ext = np.flatnonzero(tp.extrude[1:]) + 1
+    move = tp.xyz[ext] - tp.xyz[ext - 1]
+    length = np.linalg.norm(move, axis=1)
+    ok = length > 1e-9
+    ext, move, length = ext[ok], move[ok] / length[ok, None], length[ok]
+    mid = 0.5 * (tp.xyz[ext] + tp.xyz[ext - 1])
+    top = np.zeros(reference.grid.n_voxels, bool)
+    top[top_stress_indices(reference, top_fraction)] = True
+    dist, vox = cKDTree(reference.grid.centres).query(mid, distance_upper_bound=reference.grid.spacing)
+    inside = np.isfinite(dist)
+    inside[inside] = top[vox[inside]]
+    normal = tp.axis[ext[inside]] + tp.axis[ext[inside] - 1]
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    tau, _ = _project(reference.tau_max[vox[inside]], normal)
+    norm = np.linalg.norm(tau, axis=1)
+    cos = np.abs(np.einsum("ij,ij->i", move[inside], tau)) / np.maximum(norm, 1e-300)
+    angles = np.where(norm > 1e-3, np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), 90.0)
+    w = length[inside]
+    share = float(w[angles <= band_deg].sum() / w.sum()) if w.sum() > 0 else 0.0
+    return {"angles_deg": angles, "lengths": w, "aligned_fraction": share}
 
-    With ``toolpaths`` (the program printed from the field) the curved part's stiff axis is the direction of
-    the filament laid nearest each voxel, and with ``planar_toolpaths`` (toolpaths of planar layers on the same
-    part) the planar part's; without, the ideal one, tau_max projected onto the layer (a best case).
-    ``tangent`` / ``tangent_planar`` in the figures say which."""
+
+#: the parts --verify prints side by side: planar layers with today's zig-zag infill (what people print now),
+#: planar layers with stress-following infill (the best planar can do) and the program printed from the field
+PARTS = {"planar_zigzag": "planar layers + zig-zag infill", "planar_stress": "planar layers + stress-following infill",
+         "printed": "the printed program"}
+#: the figures of every part (``<part>.<figure>`` in verify's attributes, ``fea.<part>.<figure>`` in metrics.json)
+PART_FIGURES = ("max_strain", "max_strain_p99", "max_displacement_mm", "aligned_fraction")
+
+
+def _planar_lpd(points: np.ndarray) -> np.ndarray:
+    """+z everywhere (planar layers)."""
+    return np.tile([0.0, 0.0, 1.0], (len(points), 1))
+
+
+def _field_lpd(field: ScalarField) -> DirectionField:
+    """The LPD of a field, +z outside its cage."""
 
     def lpd_at(points: np.ndarray) -> np.ndarray:
         """LPD of the field, +z outside the cage."""
@@ -139,27 +174,81 @@ def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, refere
         d[~np.all(np.isfinite(d), axis=1)] = [0.0, 0.0, 1.0]
         return d
 
-    planar_tangent_at = printed_tangents(planar_toolpaths) if planar_toolpaths is not None else None
-    planar = verify_layers(solid, fea_spec, lambda p: np.tile([0.0, 0.0, 1.0], (len(p), 1)),
-                           tangent_at=planar_tangent_at, reference=reference)
-    tangent_at = printed_tangents(toolpaths) if toolpaths is not None else None
-    curved = verify_layers(solid, fea_spec, lpd_at, tangent_at=tangent_at, reference=reference)
-    return {"strain_planar": planar["strain"], "strain": curved["strain"], "centres": curved["centres"]}, {
-        "max_strain_planar": planar["max_strain"], "max_strain": curved["max_strain"],
-        "max_strain_p99_planar": planar["max_strain_p99"], "max_strain_p99": curved["max_strain_p99"],
-        "tangent": "printed toolpaths" if tangent_at is not None else "ideal: tau_max projected onto the layer",
-        "tangent_planar": ("printed toolpaths" if planar_tangent_at is not None
-                           else "ideal: tau_max projected onto the layer (best case for planar)"),
-    }
+    return lpd_at
+
+
+def _part(solid: SolidLike, fea_spec: FEASpec, lpd_at: DirectionField, tp: Toolpaths | None, reference: FEAResult
+          ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """One part's strain (filaments along ``tp``, or ideal without) and filament alignment: arrays, figures."""
+    out = verify_layers(solid, fea_spec, lpd_at, tangent_at=None if tp is None else printed_tangents(tp),
+                        reference=reference)
+    figures = {k: out[k] for k in ("max_strain", "max_strain_p99", "max_displacement_mm")}
+    arrays = {"strain": out["strain"]}
+    if tp is not None:
+        align = filament_alignment(tp, reference, fea_spec.top_fraction)
+        figures["aligned_fraction"] = align["aligned_fraction"]
+        arrays.update(angles=align["angles_deg"], angle_weights=align["lengths"])
+    figures["tangent"] = "printed toolpaths" if tp is not None else "ideal: tau_max projected onto the layer"
+    return arrays, figures
+
+
+def _collect(parts: dict[str, tuple[dict[str, np.ndarray], dict[str, Any]]], labels: dict[str, str],
+             reference: FEAResult) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The parts' arrays under ``<array>/<part>`` and figures under ``<part>.<figure>``, with the gains."""
+    arrays: dict[str, np.ndarray] = {"centres": reference.grid.centres}
+    figures: dict[str, Any] = {"parts": list(parts), "voxel_size_mm": float(reference.grid.spacing)}
+    for name, (a, f) in parts.items():
+        arrays.update({f"{k}/{name}": v for k, v in a.items()})
+        figures.update({f"{name}.{k}": v for k, v in f.items()})
+        figures[f"{name}.label"] = labels[name]
+    figures.update(strain_gains(figures))
+    return arrays, figures
+
+
+def strain_gains(figures: dict[str, Any]) -> dict[str, float]:
+    """Relative strain reductions (max and 99th percentile): ``gain.filaments`` (planar + stress infill against
+    planar + zig-zag), ``gain.layers`` (the printed part against planar + stress infill) and ``gain.total`` (the
+    printed part against planar + zig-zag), where the parts are there."""
+    out = {}
+    for gain, (part, base) in {"filaments": ("planar_stress", "planar_zigzag"), "layers": ("printed", "planar_stress"),
+                               "total": ("printed", "planar_zigzag")}.items():
+        for fig in ("max_strain", "max_strain_p99"):
+            a, b = figures.get(f"{part}.{fig}"), figures.get(f"{base}.{fig}")
+            if a is not None and b:
+                out[f"gain.{gain}.{fig}"] = 1.0 - a / b
+    return out
+
+
+def verify_field(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, reference: FEAResult | None = None
+                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The best case (``verify_tangents: ideal``): planar layers and the layers of ``field`` (its LPD; planar where a
+    voxel centre lies outside the cage), both with filaments along tau_max projected onto the layer."""
+    reference = reference if reference is not None else run_fea(solid, fea_spec)
+    parts = {"planar": _part(solid, fea_spec, _planar_lpd, None, reference),
+             "printed": _part(solid, fea_spec, _field_lpd(field), None, reference)}
+    labels = {"planar": "planar layers, ideal filaments", "printed": "the field's layers, ideal filaments"}
+    return _collect(parts, labels, reference)
 
 
 def verify_print(solid: Solid, fea_spec: FEASpec, field: ScalarField, toolpaths: Toolpaths,
                  layer_config: LayerConfig | None = None, toolpath_config: ToolpathConfig | None = None,
                  reference: FEAResult | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """:func:`verify_field` on what is printed: the computed layers' toolpaths, and toolpaths of planar layers
-    of the same part made here with the same layer and toolpath settings (a like-for-like planar baseline)."""
+    """Three printed parts of one model through one anisotropic FEA (:data:`PARTS`): planar layers with zig-zag and with
+    stress-following infill, made here with the print's layer and toolpath settings, and the program printed from
+    ``field`` (``toolpaths``); filaments along each part's own toolpaths."""
+    reference = reference if reference is not None else run_fea(solid, fea_spec)
     lc = layer_config or LayerConfig()
+    cfg = toolpath_config or ToolpathConfig()
     flat = slice_layers(solid, field.blend(1.0), lc)
-    planar = make_toolpaths(flat.meshes, platform_z=solid.platform_z, config=toolpath_config, t_max=lc.t_max)
-    strains, figures = verify_field(solid, fea_spec, field, reference, toolpaths=toolpaths, planar_toolpaths=planar)
-    return strains, {**figures, "n_planar_layers": len(flat.meshes), "n_planar_waypoints": len(planar)}
+    stress = stress_field(reference, fea_spec.top_fraction)
+    planar = {infill: make_toolpaths(flat.meshes, platform_z=solid.platform_z, t_max=lc.t_max,
+                                     config=cfg.model_copy(update={"infill": infill}),
+                                     stress=stress if infill == "stress" else None) for infill in ("zigzag", "stress")}
+    parts = {"planar_zigzag": _part(solid, fea_spec, _planar_lpd, planar["zigzag"], reference),
+             "planar_stress": _part(solid, fea_spec, _planar_lpd, planar["stress"], reference),
+             "printed": _part(solid, fea_spec, _field_lpd(field), toolpaths, reference)}
+    infill = (toolpaths.attrs.get("config") or {}).get("infill", "zigzag")
+    labels = {**PARTS, "printed": f"the printed program ({infill} infill)"}
+    arrays, figures = _collect(parts, labels, reference)
+    return arrays, {**figures, "n_planar_layers": len(flat.meshes),
+                    "n_planar_waypoints": {k: len(v) for k, v in planar.items()}}

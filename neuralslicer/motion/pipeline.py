@@ -15,6 +15,7 @@ from neuralslicer.motion.planning import MachineProgram, merge_short_moves, plan
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.motion.reorient import clamp_to_platform, clamp_to_reach, tilt_away
 from neuralslicer.motion.travel import raise_travels
+from neuralslicer.stress_field import StressLike
 from neuralslicer.toolpath.beads import bead_summary, hold_beads
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
@@ -25,14 +26,15 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
                solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
                toolpath_cfg: ToolpathConfig | None = None,
                profile: MachineProfile | str | None = None, t_max: float | None = None,
-               ) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
+               stress: StressLike | None = None) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
     """Toolpaths, machine program, metrics and the head's collisions for curved layers in print order.
 
     layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
     platform_z : platform height; solid_H : optional implicit solid (H < 0 inside) used to count
     waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a YAML path
     (default ``table_bc_linuxcnc``); t_max : the layers' largest thickness (default ``LayerConfig().t_max``),
-    which caps the measured bead thickness. Metrics: estimated_print_time_s, toolpath_length_mm,
+    which caps the measured bead thickness; stress : the load case's stress, for stress-following infill (whose
+    widths are kept within the nozzle's bead widths). Metrics: estimated_print_time_s, toolpath_length_mm,
     n_waypoints, material_mm3, collisions, rotary statistics, timings.
     """
     if profile is None or isinstance(profile, (str, Path)):
@@ -43,7 +45,9 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     if not w_lo <= cfg.line_width <= w_hi:
         raise InputError("toolpath.line_width", f"{cfg.line_width:g} mm is outside the bead widths the nozzle of "
                          f"{profile.name} lays ({w_lo:g}..{w_hi:g} mm, nozzle.bead_width_mm)")
-    tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max)
+    tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max,
+                   stress=stress)
+    np.clip(tp.width, w_lo, w_hi, out=tp.width)
     tp, beads = hold_beads(tp, profile.nozzle.bead_thickness_mm) if cfg.thin_beads == "carry" else (tp, None)
     tp, n_merged = merge_short_moves(tp, profile)
     # near the platform a tilted head dips below it: turn those axes up first (exact, local), the check judges after

@@ -19,14 +19,28 @@ class ToolpathConfig(BaseModel):
     line_width: float = Field(0.5, gt=0)
     #: number of contour-parallel shells (perimeters) per layer patch.
     n_shells: int = Field(2, ge=0)
-    #: infill pattern inside the shells: zig-zag lines, more contour-parallel rings, or none.
-    infill: Literal["zigzag", "contour", "none"] = "zigzag"
+    #: infill pattern inside the shells: zig-zag lines, more contour-parallel rings, lines along the in-layer principal
+    #: stress of the load case (``stress``: the regular zig-zag where the stress is negligible), or none. ``auto``:
+    #: ``stress`` when the slice has a load case with the ``sr`` objective, else ``zigzag``.
+    infill: Literal["auto", "zigzag", "contour", "stress", "none"] = "auto"
     #: infill density in (0, 1]; line spacing = line_width / density.
     infill_density: float = Field(1.0, gt=0, le=1)
     #: zig-zag direction of the first layer (degrees about +z in the build frame) ...
     infill_angle_deg: float = 45.0
     #: ... rotated by this much on every following layer.
     infill_angle_step_deg: float = 90.0
+    #: ``infill: stress``: the in-layer stress counts as significant (lines follow it) from this fraction of the load
+    #: case's reference stress (the smallest |max principal stress| of the strength samples T); below, zig-zag.
+    stress_threshold: float = Field(0.05, ge=0)
+    #: ``infill: stress``: how many times the line spacing may be halved or doubled where the stress lines diverge or
+    #: converge (lines start or end so that the local spacing stays within line_width / sqrt 2 .. line_width sqrt 2).
+    stress_levels: int = Field(3, ge=0, le=6)
+    #: ``infill: stress``: the scalar whose isolines are the stress lines is solved on the layer's triangles split to
+    #: this edge length (mm); its isolines are straight within each of them.
+    stress_resolution: float = Field(2.0, gt=0)
+    #: ``infill: stress``: each stress line's width follows its local spacing (within 1/sqrt 2 .. sqrt 2 of
+    #: line_width, and the nozzle's bead widths), so the layer is filled evenly; false: line_width everywhere.
+    stress_adapt_width: bool = True
     #: target waypoint spacing along paths (arc-length resampling; corners are kept).
     spacing: float = Field(0.5, gt=0)
     #: original polyline vertices turning by more than this angle are kept as waypoints.
@@ -61,6 +75,13 @@ class ToolpathConfig(BaseModel):
     thin_beads: Literal["carry", "print"] = "carry"
     #: patches whose area is below this (mm^2) are skipped (marching-tet slivers).
     min_patch_area: float = Field(0.05, ge=0)
+
+    def resolved(self, stress: bool) -> ToolpathConfig:
+        """This config with ``infill: auto`` decided: ``stress`` when a stress field is there to follow, else
+        ``zigzag``."""
+        if self.infill != "auto":
+            return self
+        return self.model_copy(update={"infill": "stress" if stress else "zigzag"})
 
 
 def load_toolpath_config(path: str | Path) -> ToolpathConfig:

@@ -1,7 +1,7 @@
 """Toolpaths on curved layers (SPEC step 11): shells, infill, ordering, travels, thickness."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -9,14 +9,18 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from neuralslicer.errors import InputError
+from neuralslicer.stress_field import StressLike
 from neuralslicer.toolpath.config import ToolpathConfig
-from neuralslicer.toolpath.geometry import (Patch, TriangleSet, boundary_distance, layer_lpd,
-                                            layer_thickness, refine_patch, split_patches)
+from neuralslicer.toolpath.geometry import (ElementSet, Patch, TriangleSet, boundary_distance, boundary_vertices,
+                                            layer_lpd, layer_thickness, refine_patch, split_patches)
 from neuralslicer.toolpath.isolines import chain_segments, isoline_points, resample_polylines
+from neuralslicer.toolpath.stress_infill import (StressPotential, delaunay_flips, dyadic_levels, in_plane_stress,
+                                                 stress_potential)
 from neuralslicer.toolpath.types import Toolpaths
-from neuralslicer.types import FloatArray
+from neuralslicer.types import FloatArray, IndexArray
 
-SHELL, INFILL = 0, 1
+#: path kinds: contour-parallel shells, regular infill (zig-zag or contour), stress-following infill
+SHELL, INFILL, STRESS = 0, 1, 2
 
 
 @dataclass
@@ -29,6 +33,13 @@ class _Path:
     kind: int
     level: int
     closed: bool
+    #: line width per waypoint (n,), or None for the configured line width
+    width: FloatArray | None = None
+
+    def reordered(self, order: IndexArray, closed: bool) -> _Path:
+        """The same path with its waypoints in ``order``."""
+        return _Path(self.xyz[order], self.axis[order], self.patch, self.kind, self.level, closed,
+                     None if self.width is None else self.width[order])
 
 
 def _normalise(v: FloatArray) -> FloatArray:
@@ -37,22 +48,55 @@ def _normalise(v: FloatArray) -> FloatArray:
 
 
 def _polylines_from_points(xyz: FloatArray, axis: FloatArray, level: np.ndarray, segments: np.ndarray,
-                           cfg: ToolpathConfig, patch_id: int, kind: int) -> list[_Path]:
-    """Chain isoline segments, resample them, and wrap them as paths."""
+                           cfg: ToolpathConfig, patch_id: int, kind: int, width: FloatArray | None = None
+                           ) -> list[_Path]:
+    """Chain isoline segments, resample them, and wrap them as paths (``width``: per point, or None)."""
     poly = chain_segments(segments, len(xyz))
     if len(poly) == 0:
         return []
-    pts, off, ax = resample_polylines(xyz[poly.ids], poly.offsets, cfg.spacing,
-                                      attributes=axis[poly.ids], corner_angle_deg=cfg.corner_angle_deg)
-    ax = _normalise(ax)
+    attributes = axis if width is None else np.column_stack([axis, width])
+    pts, off, at = resample_polylines(xyz[poly.ids], poly.offsets, cfg.spacing,
+                                      attributes=attributes[poly.ids], corner_angle_deg=cfg.corner_angle_deg)
+    ax = _normalise(at[:, :3])
+    wd = None if width is None else at[:, 3]
     lev = level[poly.ids[poly.offsets[:-1]]]
     out = []
     for i in range(len(off) - 1):
         a, b = off[i], off[i + 1]
         if b - a < 2:
             continue
-        out.append(_Path(pts[a:b], ax[a:b], patch_id, kind, int(lev[i]), bool(poly.closed[i])))
+        out.append(_Path(pts[a:b], ax[a:b], patch_id, kind, int(lev[i]), bool(poly.closed[i]),
+                         None if wd is None else wd[a:b]))
     return out
+
+
+def clip_segments(segments: IndexArray, values: FloatArray, threshold: float, points: dict[str, np.ndarray]
+                  ) -> tuple[IndexArray, dict[str, np.ndarray]]:
+    """The parts of isoline segments (s, 2) where the per-point ``values`` (k,) are at least ``threshold``.
+
+    A segment with one end below is cut where the (linear) values cross the threshold; every per-point
+    array of ``points`` (k, ...) gets the cut points appended (floats interpolated, integers copied from the
+    kept end's partner ``a``). Returns the kept segments and the extended point arrays.
+    """
+    seg = segments.copy()
+    ina, inb = values[seg[:, 0]] >= threshold, values[seg[:, 1]] >= threshold
+    keep = ina | inb
+    ci = np.flatnonzero(keep & (ina != inb))
+    if len(ci):
+        a, b = seg[ci, 0], seg[ci, 1]
+        tt = ((threshold - values[a]) / (values[b] - values[a]))[:, None]
+        new_id = len(values) + np.arange(len(ci))
+        out = {}
+        for name, arr in points.items():
+            if arr.dtype.kind == "f":
+                t = tt if arr.ndim == 2 else tt[:, 0]
+                out[name] = np.concatenate([arr, (1 - t) * arr[a] + t * arr[b]])
+            else:
+                out[name] = np.concatenate([arr, arr[a]])
+        points = out
+        seg[ci[~ina[ci]], 0] = new_id[~ina[ci]]
+        seg[ci[ina[ci]], 1] = new_id[ina[ci]]
+    return seg[keep], points
 
 
 def distance_band(cfg: ToolpathConfig) -> float:
@@ -68,8 +112,10 @@ def distance_band(cfg: ToolpathConfig) -> float:
 
 
 def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathConfig,
-                 surface: TriangleSet | None = None) -> list[_Path]:
-    """Shells and infill of one (refined) patch, unordered; ``surface``: its triangles before refinement."""
+                 surface: TriangleSet | None = None, stress: _StressSetup | None = None) -> list[_Path]:
+    """Shells and infill of one (refined) patch, unordered; ``surface``: its triangles before refinement;
+    ``stress``: its stress scalar, for stress-following infill (the regular zig-zag where the stress is not
+    significant)."""
     w = cfg.line_width
     d = boundary_distance(patch, upper=distance_band(cfg), surface=surface)
     finite = np.isfinite(d)
@@ -89,49 +135,138 @@ def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathCon
             xyz = iso.interpolate(patch.vertices)
             ax = _normalise(iso.interpolate(patch.lpd))
             paths += _polylines_from_points(xyz, ax, iso.level, iso.segments, cfg, patch_id, SHELL)
-    # zig-zag infill: isolines of a projected coordinate, clipped to d >= d0
-    if cfg.infill == "zigzag":
-        d0 = cfg.n_shells * w + 0.5 * w if cfg.n_shells > 0 else 0.5 * w
-        if not finite.all():
-            d0 = -np.inf
-            d = np.where(finite, d, 0.0)
-        region = d >= d0
-        if region.any():
-            theta = np.radians(cfg.infill_angle_deg + layer_index * cfg.infill_angle_step_deg)
-            u = np.array([np.cos(theta), np.sin(theta), 0.0])
-            s = patch.vertices @ u
-            s_lo, s_hi = s[region].min(), s[region].max()
-            n_lines = int(np.floor((s_hi - s_lo) / spacing_in))
-            # centre the lines in the region; a tiny offset keeps levels off vertex values
-            offset = 0.5 * ((s_hi - s_lo) - n_lines * spacing_in) + 1e-7 * spacing_in
-            lv = s_lo + offset + spacing_in * np.arange(n_lines + 1)
-            lv = lv[(lv > s.min()) & (lv < s.max())]
-            iso = isoline_points(patch.faces, s, lv)
-            if len(iso.t):
-                xyz = iso.interpolate(patch.vertices)
-                ax = iso.interpolate(patch.lpd)
-                dp = iso.interpolate(d)
-                level = iso.level
-                seg = iso.segments.copy()
-                da, db = dp[seg[:, 0]], dp[seg[:, 1]]
-                ina, inb = da >= d0, db >= d0
-                keep = ina | inb
-                cut = keep & (ina != inb)
-                ci = np.flatnonzero(cut)
-                if len(ci):
-                    a, b = seg[ci, 0], seg[ci, 1]
-                    tt = ((d0 - dp[a]) / (dp[b] - dp[a]))[:, None]
-                    new_xyz = (1 - tt) * xyz[a] + tt * xyz[b]
-                    new_ax = (1 - tt) * ax[a] + tt * ax[b]
-                    new_id = len(xyz) + np.arange(len(ci))
-                    xyz = np.concatenate([xyz, new_xyz])
-                    ax = np.concatenate([ax, new_ax])
-                    level = np.concatenate([level, level[a]])
-                    seg[ci[~ina[ci]], 0] = new_id[~ina[ci]]
-                    seg[ci[ina[ci]], 1] = new_id[ina[ci]]
-                seg = seg[keep]
-                paths += _polylines_from_points(xyz, _normalise(ax), level, seg, cfg, patch_id, INFILL)
+    if cfg.infill not in ("zigzag", "stress"):
+        return paths
+    # infill inside the shells: clipped to d >= d0
+    d0 = cfg.n_shells * w + 0.5 * w if cfg.n_shells > 0 else 0.5 * w
+    if not finite.all():
+        d0 = -np.inf
+        d = np.where(finite, d, 0.0)
+    if stress is None:
+        return paths + _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index)
+    paths += _stress_lines(stress, d0, cfg, patch_id, layer_index, surface)
+    if (stress.potential.region < 0).any():
+        # the regular pattern where the in-layer stress is negligible
+        _, magnitude, _ = in_plane_stress(stress.stress.tensor_at(patch.vertices), patch.lpd)
+        region = magnitude / (cfg.stress_threshold * stress.stress.reference_mpa) - 1.0
+        paths += _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index, -region)
     return paths
+
+
+def _zigzag_lines(patch: Patch, d: FloatArray, d0: float, cfg: ToolpathConfig, patch_id: int, layer_index: int,
+                  region: FloatArray | None = None) -> list[_Path]:
+    """Zig-zag infill: isolines of a coordinate projected on the layer's direction, clipped to ``d >= d0`` (and to
+    ``region >= 0`` per vertex, when given)."""
+    inside = d >= d0
+    if region is not None:
+        inside &= region >= 0
+    if not inside.any():
+        return []
+    spacing_in = cfg.line_width / cfg.infill_density
+    theta = np.radians(cfg.infill_angle_deg + layer_index * cfg.infill_angle_step_deg)
+    u = np.array([np.cos(theta), np.sin(theta), 0.0])
+    s = patch.vertices @ u
+    s_lo, s_hi = s[inside].min(), s[inside].max()
+    n_lines = int(np.floor((s_hi - s_lo) / spacing_in))
+    # centre the lines in the region; a tiny offset keeps levels off vertex values
+    offset = 0.5 * ((s_hi - s_lo) - n_lines * spacing_in) + 1e-7 * spacing_in
+    lv = s_lo + offset + spacing_in * np.arange(n_lines + 1)
+    lv = lv[(lv > s.min()) & (lv < s.max())]
+    iso = isoline_points(patch.faces, s, lv)
+    if not len(iso.t):
+        return []
+    pts = {"xyz": iso.interpolate(patch.vertices), "axis": iso.interpolate(patch.lpd), "level": iso.level}
+    if region is not None:
+        pts["region"] = iso.interpolate(region)
+    seg, pts = clip_segments(iso.segments, iso.interpolate(d), d0, pts)
+    if region is not None:
+        seg, pts = clip_segments(seg, pts["region"], 0.0, pts)
+    return _polylines_from_points(pts["xyz"], _normalise(pts["axis"]), pts["level"], seg, cfg, patch_id, INFILL)
+
+
+def _stress_lines(setup: _StressSetup, d0: float, cfg: ToolpathConfig, patch_id: int, layer_index: int,
+                  surface: TriangleSet | None = None) -> list[_Path]:
+    """Stress-following infill: isolines of the patch's stress scalar (on its triangulation, cut open) at dyadic
+    levels, each kept where the local gradient asks for its order, densified to the refined patch's edge length and
+    clipped to the significant stress region and to ``d >= d0`` (the straight-line distance to the patch boundary,
+    which never exceeds the distance along the patch, so the lines stay off the shells); widths = the local line
+    spacing (module ``stress_infill``). Odd layers are shifted by half a line (staggered). Where the triangulation
+    leaves the layer by more than 0.01 mm (flipped edges of a curved patch) the isoline points are put back onto its
+    own triangles ``surface`` before the densification."""
+    mesh, pot = setup.mesh, setup.potential
+    spacing_in = cfg.line_width / cfg.infill_density
+    region = pot.region[pot.origin]
+    edges = boundary_vertices(mesh.faces)[1]
+    boundary = ElementSet(mesh.vertices, edges) if len(edges) and np.isfinite(d0) else None
+    d_mesh = boundary.distance(mesh.vertices)[pot.origin] if boundary is not None else np.full(len(region), np.inf)
+    keep = (region >= 0) & (d_mesh >= d0)
+    if not keep.any():
+        return []
+    lv = dyadic_levels(pot, spacing_in, cfg.stress_levels, 0.5 * (layer_index % 2), keep)
+    iso = isoline_points(pot.faces, pot.phi, lv.levels)
+    if not len(iso.t):
+        return []
+    pts = {"xyz": iso.interpolate(mesh.vertices[pot.origin]), "axis": iso.interpolate(mesh.lpd[pot.origin]),
+           "level": iso.level, "rho": iso.interpolate(pot.rho), "region": iso.interpolate(region),
+           "d": iso.interpolate(np.minimum(d_mesh, 1e6))}
+    order = lv.order[pts["level"]]
+    coarsest = int(lv.order.max())
+    # a line of order o stays where log2(|grad phi| / ref) <= o + 1/2 (the coarsest everywhere)
+    seg, pts = clip_segments(iso.segments, np.where(order >= coarsest, np.inf, order + 0.5 - pts["rho"]), 0.0, pts)
+    seg, pts = compact_points(*clip_segments(seg, pts["region"], 0.0, pts))
+    if surface is not None and setup.offset > 0.01:
+        pts["xyz"] = surface.closest(pts["xyz"])[0]
+    seg, pts = densify_segments(seg, pts, cfg.max_edge or cfg.line_width)
+    if boundary is not None:
+        # the exact distance where the interpolated one (1-Lipschitz, on edges of stress_resolution) may be near d0
+        d = pts["d"].copy()
+        near = d < d0 + cfg.stress_resolution
+        d[near] = boundary.distance(pts["xyz"][near])
+        seg, pts = clip_segments(seg, d, d0, pts)
+    if not len(seg):
+        return []
+    present = np.clip(np.ceil(pts["rho"] - 0.5), int(lv.order.min()), coarsest)
+    factor = np.clip(2.0 ** (present - pts["rho"]), 2.0 ** -0.5, 2.0 ** 0.5) if cfg.stress_adapt_width else 1.0
+    width = cfg.line_width * np.broadcast_to(factor, pts["rho"].shape).astype(np.float64)
+    _, rank = np.unique(pts["level"][seg.ravel()], return_inverse=True)
+    level = np.zeros(len(pts["level"]), np.int64)
+    level[seg.ravel()] = rank
+    return _polylines_from_points(pts["xyz"], _normalise(pts["axis"]), level, seg, cfg, patch_id, STRESS, width)
+
+
+def compact_points(segments: IndexArray, points: dict[str, np.ndarray]) -> tuple[IndexArray, dict[str, np.ndarray]]:
+    """Only the points (and per-point arrays) the segments (s, 2) use, renumbered."""
+    used, inv = np.unique(segments, return_inverse=True)
+    return inv.reshape(-1, 2).astype(np.int64), {k: v[used] for k, v in points.items()}
+
+
+def densify_segments(segments: IndexArray, points: dict[str, np.ndarray], max_length: float
+                     ) -> tuple[IndexArray, dict[str, np.ndarray]]:
+    """Segments (s, 2) split into equal pieces no longer than ``max_length``: the per-point arrays of ``points``
+    get the new points appended (floats interpolated, integers copied from the segment's first point)."""
+    a, b = segments[:, 0], segments[:, 1]
+    length = np.linalg.norm(points["xyz"][b] - points["xyz"][a], axis=1)
+    n = np.maximum(np.ceil(length / max_length - 1e-9).astype(np.int64), 1)
+    if (n == 1).all():
+        return segments, points
+    rep = np.repeat(np.arange(len(segments)), n - 1)
+    j = np.arange(len(rep)) - np.repeat(np.cumsum(n - 1) - (n - 1), n - 1) + 1
+    t = j / n[rep]
+    base = len(points["xyz"])
+    out = {}
+    for name, arr in points.items():
+        if arr.dtype.kind == "f":
+            tt = t.reshape((-1,) + (1,) * (arr.ndim - 1))
+            out[name] = np.concatenate([arr, (1 - tt) * arr[a[rep]] + tt * arr[b[rep]]])
+        else:
+            out[name] = np.concatenate([arr, arr[a[rep]]])
+    # chain: a -> the segment's new points in order -> b
+    new_id = base + np.arange(len(rep))
+    prev = np.where(j == 1, a[rep], new_id - 1)
+    split = np.flatnonzero(n > 1)
+    last = base + np.cumsum(n - 1)[split] - 1
+    pieces = np.concatenate([segments[n == 1], np.stack([prev, new_id], axis=1), np.stack([last, b[split]], axis=1)])
+    return pieces, out
 
 
 def _order_paths(paths: list[_Path], start: FloatArray, alternate_loops: bool = False,
@@ -178,16 +313,16 @@ def _order_paths(paths: list[_Path], start: FloatArray, alternate_loops: bool = 
             if alternate_loops and loop_parity % 2 == 1:
                 order = order[::-1]
             loop_parity += 1
-            p = _Path(p.xyz[order], p.axis[order], p.patch, p.kind, p.level, True)
+            p = p.reordered(order, True)
         elif pos != 0:
-            p = _Path(p.xyz[::-1], p.axis[::-1], p.patch, p.kind, p.level, False)
+            p = p.reordered(np.arange(len(p.xyz))[::-1], False)
         ordered.append(p)
         cur = p.xyz[-1]
     return ordered
 
 
 def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet], cfg: ToolpathConfig) -> list[_Path]:
-    """Join consecutive infill lines of adjacent levels by an extruding connector on the patch.
+    """Join consecutive infill lines of one kind and adjacent levels by an extruding connector on the patch.
 
     Connector points are spaced by at most ``cfg.spacing`` and projected onto the patch (closest
     point on the layer's own triangles, which the refined patch subdivides), so they lie on the
@@ -202,7 +337,7 @@ def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet], cfg: Toolpath
     patch = np.array([p.patch for p in ordered])
     level = np.array([p.level for p in ordered])
     gap = np.linalg.norm(first[1:] - last[:-1], axis=1)
-    join = ((kind[1:] == INFILL) & (kind[:-1] == INFILL) & (patch[1:] == patch[:-1])
+    join = ((kind[1:] != SHELL) & (kind[1:] == kind[:-1]) & (patch[1:] == patch[:-1])
             & (np.abs(np.diff(level)) == 1) & (gap > 0) & (gap <= gap_max))
     if not join.any():
         return ordered
@@ -224,18 +359,25 @@ def _join_zigzag(ordered: list[_Path], patches: list[TriangleSet], cfg: Toolpath
     out: list[_Path] = []
     xyz: list[FloatArray] = []
     ax: list[FloatArray] = []
+    wd: list[FloatArray] = []
     for i, p in enumerate(ordered):
         xyz.append(p.xyz)
         ax.append(p.axis)
+        if p.width is not None:
+            wd.append(p.width)
         if i in conn:
             xyz.append(conn[i][0])
             ax.append(conn[i][1])
+            if p.width is not None:                # the connector's width runs from one line's end to the next's start
+                t_i = np.linspace(0.0, 1.0, len(conn[i][0]) + 2)[1:-1]
+                wd.append((1 - t_i) * p.width[-1] + t_i * ordered[i + 1].width[0])
             continue
         if len(xyz) == 1:
             out.append(p)
-        else:                                    # a joined group: one patch, the last line's level
-            out.append(_Path(np.concatenate(xyz), np.concatenate(ax), p.patch, INFILL, p.level, False))
-        xyz, ax = [], []
+        else:                                    # a joined group: one patch and kind, the last line's level
+            out.append(_Path(np.concatenate(xyz), np.concatenate(ax), p.patch, p.kind, p.level, False,
+                             np.concatenate(wd) if wd else None))
+        xyz, ax, wd = [], [], []
     return out
 
 
@@ -250,10 +392,11 @@ class _Columns:
         self.cols: dict[str, list] = {k: [] for k in COLUMNS}
 
     def emit(self, layer: int, path: int, xyz: FloatArray, axis: FloatArray, thick: FloatArray,
-             width: float, extrude: np.ndarray) -> None:
-        """Append waypoints."""
+             width: float | FloatArray, extrude: np.ndarray) -> None:
+        """Append waypoints (``width``: one for all, or one per waypoint)."""
+        widths = np.full(len(xyz), width) if np.ndim(width) == 0 else np.asarray(width, np.float64)
         for k, v in zip(COLUMNS, (np.full(len(xyz), layer, np.int64), np.full(len(xyz), path, np.int64), xyz, axis,
-                                  thick, np.full(len(xyz), width), extrude)):
+                                  thick, widths, extrude)):
             self.cols[k].append(v)
 
     def end_layer(self, start: int) -> None:
@@ -274,8 +417,32 @@ class _Columns:
                          thickness=c["thickness"], width=c["width"], extrude=c["extrude"])
 
 
-def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int
-                 ) -> tuple[list[_Path], int, int, int]:
+@dataclass
+class _StressSetup:
+    """What a patch's stress-following infill needs: the triangulation its scalar is solved on (the layer's triangles
+    made Delaunay and split to ``stress_resolution``), the scalar, how far that triangulation leaves the layer, and
+    the stress field (for the region left to the regular pattern)."""
+
+    mesh: Patch
+    potential: StressPotential
+    offset: float
+    stress: StressLike
+
+
+def _stress_setup(patch: Patch, stress: StressLike, cfg: ToolpathConfig) -> _StressSetup | None:
+    """The stress scalar of a patch, or None where its in-layer stress is nowhere significant."""
+    _, magnitude, _ = in_plane_stress(stress.tensor_at(patch.vertices), patch.lpd)
+    if not (magnitude >= cfg.stress_threshold * stress.reference_mpa).any() or not stress.reference_mpa > 0:
+        return None
+    faces, offset = delaunay_flips(patch.vertices, patch.faces)
+    mesh = refine_patch(replace(patch, faces=faces, distance=None), cfg.stress_resolution)
+    pot = stress_potential(mesh.vertices, mesh.faces, mesh.lpd, stress, cfg.stress_threshold,
+                           cfg.line_width / cfg.infill_density)
+    return None if pot is None else _StressSetup(mesh, pot, offset, stress)
+
+
+def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int,
+                 stress: StressLike | None = None) -> tuple[list[_Path], int, int, int]:
     """One layer's paths in print order from ``start`` (patches split, refined, filled, zigzags joined),
     the patches filled and skipped, and the closed loops among the paths."""
     verts, faces = np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64)
@@ -290,8 +457,9 @@ def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: Fl
             skipped += 1
             continue
         filled.append(TriangleSet(patch.vertices, patch.faces))
+        lines = _stress_setup(patch, stress, cfg) if cfg.infill == "stress" and stress is not None else None
         fine = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
-        all_paths += _patch_paths(fine, len(filled) - 1, li, cfg, filled[-1])
+        all_paths += _patch_paths(fine, len(filled) - 1, li, cfg, filled[-1], lines)
     if not all_paths:
         return [], 0, skipped, 0
     start = start if start is not None else all_paths[0].xyz[0]
@@ -313,34 +481,42 @@ def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray
                 cols.emit(li, -1, lift_pts, np.stack([a0, p.axis[0]]), np.zeros(2), 0.0, np.zeros(2, bool))
         ext = np.ones(len(p.xyz), bool)
         ext[0] = False
-        cols.emit(li, path_id, p.xyz, p.axis, th, cfg.line_width, ext)
+        cols.emit(li, path_id, p.xyz, p.axis, th, cfg.line_width if p.width is None else p.width, ext)
         path_id += 1
         cur, prev_ax, prev_patch = p.xyz[-1], p.axis[-1], p.patch
     return cur, path_id
 
 
 def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
-              config: ToolpathConfig | None = None, t_max: float = 1.0) -> Toolpaths:
+              config: ToolpathConfig | None = None, t_max: float = 1.0, stress: StressLike | None = None) -> Toolpaths:
     """Toolpaths for curved layers in print order (SPEC step 11).
 
     layers : trimesh layers in the build frame, faces oriented along the LPD, optional
     ``vertex_attributes['lpd']`` (n, 3); platform_z : height of the platform plane; t_max : the
-    layers' largest acceptable thickness (``LayerConfig.t_max``), which caps the measured thickness.
+    layers' largest acceptable thickness (``LayerConfig.t_max``), which caps the measured thickness;
+    stress : the load case's stress field, which ``infill: stress`` (and ``auto``) follows.
     Returns waypoints with tool axis (LPD), local thickness, width and extrude flags; travel
     waypoints lifted by ``config.travel_lift`` along the tool axis have ``path = -1``.
     """
-    cfg = config or ToolpathConfig()
+    cfg = (config or ToolpathConfig()).resolved(stress is not None)
     if len(layers) == 0:
         raise InputError("layers", "no curved layers to fill with toolpaths")
+    if cfg.infill == "stress" and stress is None:
+        raise InputError("toolpath.infill", "stress-following infill needs the stress of a load case: an 'fea' block "
+                         "(supports and loads) in the model spec")
     cols = _Columns()
     below: TriangleSet | None = None
     cur = None
     path_id = n_patches = n_skipped = n_loops = 0
+    infill_mm = {INFILL: 0.0, STRESS: 0.0}
     for li, layer in enumerate(layers):
         if len(layer.faces) == 0:
             continue
-        ordered, filled, skipped, loops = _layer_paths(layer, li, cfg, cur, n_loops)
+        ordered, filled, skipped, loops = _layer_paths(layer, li, cfg, cur, n_loops, stress)
         n_patches, n_skipped, n_loops = n_patches + filled, n_skipped + skipped, n_loops + loops
+        for p in ordered:
+            if p.kind in infill_mm:
+                infill_mm[p.kind] += float(np.linalg.norm(np.diff(p.xyz, axis=0), axis=1).sum())
         if ordered:
             xyz, ax = np.concatenate([p.xyz for p in ordered]), np.concatenate([p.axis for p in ordered])
             thick = layer_thickness(xyz, ax, below, platform_z, cfg.thickness_cap_factor * t_max, t_max)
@@ -357,4 +533,7 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
                 "n_input_layers": len(layers),
                 "isovalues": [None if v is None else float(v) for v in isovalues],
                 "n_paths": int(path_id), "n_patches": n_patches, "n_patches_skipped": n_skipped}
+    if cfg.infill == "stress":
+        total = infill_mm[INFILL] + infill_mm[STRESS]
+        tp.attrs["stress_infill_fraction"] = infill_mm[STRESS] / total if total > 0 else 0.0
     return tp
