@@ -61,7 +61,14 @@ def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output fold
     p.add_argument("--collision-fallback", choices=("blend", "none"), default=None,
                    help="still colliding: blend the field toward planar layers until collision-free (default blend) "
                         "or keep the colliding program")
-    p.add_argument("--verify", action="store_true", help="anisotropic FEA of planar vs computed layers (spec needs fea)")
+    p.add_argument("--verify", action="store_true",
+                   help="anisotropic FEA of the printed part beside planar layers with zig-zag and with stress-following "
+                        "infill (spec needs fea)")
+    p.add_argument("--infill", choices=("auto", "zigzag", "contour", "stress", "none"), default=None,
+                   help="infill inside the shells (default auto: stress-following with a load case and sr, else zigzag)")
+    p.add_argument("--sr-rounds", type=int, default=None,
+                   help="with sr: re-run the FEA with the material of the print, re-sample T and tau_max and "
+                        "re-optimise from the current field, until this many rounds (default 1, the paper)")
 
 
 # option -> its key in the configuration
@@ -75,6 +82,8 @@ CONFIG_KEYS = {
     "collision_refinements": ("collision_refinements",),
     "collision_retries": ("collision_retries",),
     "collision_fallback": ("collision_fallback",),
+    "infill": ("toolpath", "infill"),
+    "sr_rounds": ("sr_rounds",),
     "machine": ("machine",),
     "cage_elements": ("cage", "n_elements"),
 }

@@ -11,6 +11,7 @@ from prefect import flow, get_run_logger
 from prefect.states import State
 
 from neuralslicer.config import SliceConfig
+from neuralslicer.layers import LayerConfig
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.model.spec import ModelSpec, spec_digest
@@ -21,7 +22,7 @@ from storage import ArtifactRef, ArtifactStore, write_json_atomic
 from tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
 from tasks.common import run_step
 from tasks.export import export_task
-from tasks.fea import fea_task, stress_samples_task, verify_task
+from tasks.fea import fea_task, printed_fea_task, stress_samples_task, verify_task
 from tasks.provenance import record_provenance
 from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, s3_field_task, samples_task,
                          solid_task, toolpaths_task)
@@ -97,6 +98,37 @@ def _blended_print(log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRe
     return blended, layers, print_layers(layers)
 
 
+def strength_rounds(
+    log: RunLog, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef, fea: ArtifactRef,
+    objectives: list[str], neural: NeuralConfig, current: tuple[ArtifactRef, ArtifactRef, ArtifactRef], n_rounds: int,
+    layer_config: LayerConfig, print_layers: Callable[[ArtifactRef, ArtifactRef | None], ArtifactRef],
+) -> tuple[tuple[ArtifactRef, ArtifactRef, ArtifactRef], list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]]]:
+    """Strength rounds (``sr_rounds``, beyond the paper): the FEA of the part as printed (its filaments, its layers)
+    gives the stress the print really carries; T and tau_max are sampled from it and the field re-optimised from
+    its weights, then layered and printed with the infill following that stress, ``n_rounds`` - 1 times. A round
+    whose print collides ends the rounds and the print before it is kept. Returns the final (field, layers,
+    print) and every round as (label, field, print, the FEA of that print)."""
+    field_ref, layers, printing = current
+    rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] = []
+    for r in range(1, n_rounds + 1):
+        printed = log.run(printed_fea_task, store=store, model=model, fea=fea, cage=cage, field=field_ref,
+                          printing=printing)
+        rounds.append((f"round {r}" + (" (isotropic tau_max, the paper)" if r == 1 else ""), field_ref, printing, printed))
+        if r == n_rounds:
+            break
+        stress = log.run(stress_samples_task, store=store, model=model, fea=printed)
+        next_field = log.run(field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
+                             objectives=objectives, config=neural, warm_start=field_ref)
+        next_layers = log.run(layers_task, store=store, model=model, cage=cage, field=next_field, config=layer_config)
+        next_print = print_layers(next_layers, printed)
+        if n_collisions(next_print):
+            get_run_logger().warning("strength round %d: its print has %d nozzle collisions; the print of round %d is "
+                                     "kept", r + 1, n_collisions(next_print), r)
+            break
+        field_ref, layers, printing = next_field, next_layers, next_print
+    return (field_ref, layers, printing), rounds
+
+
 @dataclass
 class SliceRun:
     """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest,
@@ -134,10 +166,11 @@ def slice_pipeline(
     machine = load_profile(config.machine)
     toolpath = config.toolpath_for(spec)
 
-    def print_layers(layers: ArtifactRef) -> ArtifactRef:
-        """The toolpaths and program of these layers (the infill following the FEA's stress when asked)."""
+    def print_layers(layers: ArtifactRef, stress_of: ArtifactRef | None = None) -> ArtifactRef:
+        """The toolpaths and program of these layers (the infill following the stress of the FEA ``stress_of``, by
+        default the isotropic one, when asked)."""
         return log.run(toolpaths_task, store=store, model=model, layers=layers, config=toolpath, machine=machine,
-                       t_max=config.layers.t_max, fea=fea if toolpath.infill == "stress" else None)
+                       t_max=config.layers.t_max, fea=(stress_of or fea) if toolpath.infill == "stress" else None)
 
     neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width)
     # every field printed on the way to a collision-free program: (label, field, print)
@@ -185,6 +218,11 @@ def slice_pipeline(
     if collisions and objectives and config.collision_fallback == "blend":
         field_ref, layers, printing = blend_until_collision_free(log, store, model, cage, field_ref, config,
                                                                  print_layers, attempts)
+    rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] = []
+    if config.sr_rounds > 1 and "sr" in objectives and config.method == "neural":
+        (field_ref, layers, printing), rounds = strength_rounds(
+            log, store, model, cage, samples, fea, objectives, neural, (field_ref, layers, printing), config.sr_rounds,
+            config.layers, print_layers)
     if config.verify:
         printed = None if config.verify_tangents == "ideal" else printing
         verify = log.run(verify_task, store=store, model=model, fea=fea, cage=cage, field=field_ref, printing=printed,
@@ -194,7 +232,7 @@ def slice_pipeline(
         field=field_ref, layers=layers, printing=printing, stress=stress, verify=verify, robot=config.robot,
         alpha_deg=config.alpha_deg,
         beta_deg=config.neural.loss.beta_deg,
-        attempts=attempts if len(attempts) > 1 else [],
+        attempts=attempts if len(attempts) > 1 else [], sr_rounds=rounds,
     )
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
                         extra={**(provenance_extra or {}), "store": store,

@@ -180,9 +180,13 @@ def _as_printed(config: SliceConfig) -> SliceConfig:
 
 
 def methods_branches(model: str, options: StudyOptions) -> list[Branch]:
-    """Branches of the methods study: the Neural Slicer, the S3-Slicer baseline and planar layers, on one cage."""
+    """Branches of the methods study: the Neural Slicer, the S3-Slicer baseline and planar layers, on one cage; with a
+    load case all three print the same infill (stress-following unless the configuration names one), so that the
+    strength figures compare the layers, not the infill."""
     out, store = Path(options.out_dir), _store(options)
     base = _as_printed(options.config)
+    if load_branch_spec(model, options.up).fea is not None and base.toolpath.infill == "auto":
+        base = _variant(base, "study", toolpath__infill="stress")
     variants = {"neural": _variant(base, "study", method="neural"), "s3": _variant(base, "study", method="s3"),
                 "planar": _variant(base, "study", objectives=[])}
     return [Branch(name=name, model=model, up=options.up, config=cfg, out_dir=str(out / name), store=store,

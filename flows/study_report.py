@@ -58,7 +58,9 @@ def table_rows(study: dict[str, Any]) -> list[dict[str, Any]]:
             row["collisions"] = m.get("collisions")
             if "fea.max_strain" in m:
                 row["max strain"] = m.get("fea.max_strain")
-                row["max strain planar"] = m.get("fea.max_strain_planar")
+                row["strain p99"] = m.get("fea.max_strain_p99")
+                row["max strain, planar + zig-zag"] = m.get("fea.planar_zigzag.max_strain")
+                row["filaments along tau_max"] = m.get("fea.aligned_fraction")
             row["field s"] = field.get("optimise_wall_s")
         row["layers"] = m.get("n_layers")
         row["wall s"] = b.get("wall_s")

@@ -58,7 +58,12 @@ class SliceConfig(BaseModel):
         "((1-t) G + t z, the smallest t found by bisection that is collision-free; t = 1 is planar) or keep it")
     collision_blend_steps: int = Field(
         5, ge=1, le=8, description="bisection steps of the planar blend (t to within 2^-steps)")
-    verify: bool = Field(False, description="anisotropic FEA of planar vs computed layers (needs the spec's fea block)")
+    verify: bool = Field(False, description="anisotropic FEA of the printed part beside planar layers with zig-zag and "
+                         "with stress-following infill (needs the spec's fea block)")
+    sr_rounds: int = Field(
+        1, ge=1, le=5, description="with sr: after the print, re-run the FEA with its material (filaments along its "
+        "toolpaths), re-sample T and tau_max from it and re-optimise from the current field, until this many rounds; "
+        "1 is the paper (tau_max from the isotropic FEA only)")
     verify_tangents: Literal["printed", "ideal"] = Field(
         "printed", description="stiff material axis of the computed layers in --verify: the printed toolpaths' "
         "direction, or the ideal one (tau_max projected onto the layer, a best case)")

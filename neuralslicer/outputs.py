@@ -30,7 +30,7 @@ from neuralslicer.metrics import (heldout_surface_samples, layer_lpd_at, overhan
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
                                  plot_filament_angles, plot_layers_3d, plot_learning_curves, plot_overhang_map,
-                                 plot_strain_histogram, plot_strain_maps, plot_thickness_map)
+                                 plot_strain_histogram, plot_strain_maps, plot_stress_turn, plot_thickness_map)
 from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
@@ -54,6 +54,21 @@ class Attempt:
     print_metrics: dict
 
 
+#: the arrays of a strength round (``stress_turn``): how far tau_max turned, the layers' angle to each tau_max
+TURN_ARRAYS = ("tau_turn_deg", "layer_tau_iso_deg", "layer_tau_printed_deg")
+
+
+@dataclass
+class StrengthRound:
+    """One strength round (``sr_rounds``): its label, its print's collisions, the FEA of that print (``max_strain``,
+    ``max_strain_p99``, ``max_displacement_mm``, ``tau_turn_median_deg``, ...) and the :data:`TURN_ARRAYS`."""
+
+    label: str
+    collisions: int
+    figures: dict
+    turn: dict[str, np.ndarray]
+
+
 @dataclass
 class RunResults:
     """The results of every step of one slice, as the output contract needs them."""
@@ -75,6 +90,7 @@ class RunResults:
     stress: StressSamples | None = None
     verify: tuple[dict[str, np.ndarray], dict[str, float]] | None = None
     attempts: list[Attempt] = field(default_factory=list)
+    strength_rounds: list[StrengthRound] = field(default_factory=list)
 
     @cached_property
     def lpd_b(self) -> np.ndarray:
@@ -189,6 +205,8 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
             T.tau_max, T.volumes, np.tile(PLANAR, (len(T.points), 1)), beta_deg)
     if run.verify is not None:
         metrics.update(verify_metrics(run.verify[1]))
+    for i, row in enumerate(strength_round_rows(run.strength_rounds, beta_deg)):
+        metrics.update({f"sr_rounds.{i}.{k}": v for k, v in row.items()})
     metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
     if "stress_infill_fraction" in run.toolpaths.attrs:
         metrics["toolpath.stress_infill_fraction"] = run.toolpaths.attrs["stress_infill_fraction"]
@@ -228,6 +246,9 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
         figures["Strength angle histogram"] = "figures/sr_histogram.png"
     if run.verify is not None:
         figures.update(draw_strength_figures(figs, *run.verify))
+    if run.strength_rounds:
+        plot_stress_turn(figs / "stress_turn.png", {r.label: r.turn for r in run.strength_rounds}, beta_deg)
+        figures["tau_max of the printed part against the isotropic one, per strength round"] = "figures/stress_turn.png"
     if run.field_history:
         plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
         figures["Learning curves"] = "figures/learning_curves.png"
@@ -254,6 +275,33 @@ def verify_metrics(figures: dict[str, Any]) -> dict[str, Any]:
     out.update({f"fea.{fig}": figures[f"printed.{fig}"] for fig in PART_FIGURES if f"printed.{fig}" in figures})
     out.update({f"fea.{k}": v for k, v in figures.items() if k.startswith("gain.")})
     return out
+
+
+def strength_round_rows(rounds: list[StrengthRound], beta_deg: float) -> list[dict[str, Any]]:
+    """Per strength round: its label, collisions, the strain of its print, how far the print turned tau_max, and the
+    share of T whose layer lies within beta of tau_max, the isotropic one (what the round optimised, in round 1) and
+    the printed part's."""
+    rows = []
+    for r in rounds:
+        row: dict[str, Any] = {"stage": r.label, "collisions": r.collisions}
+        row.update({k: float(r.figures[k]) for k in ("max_strain", "max_strain_p99", "max_displacement_mm",
+                                                      "tau_turn_median_deg", "tau_turn_p90_deg") if k in r.figures})
+        for which in ("iso", "printed"):
+            a = r.turn.get(f"layer_tau_{which}_deg")
+            if a is not None and len(a):
+                row[f"sr_satisfied_{which}"] = float(np.mean(a <= beta_deg))
+        rows.append(row)
+    return rows
+
+
+def strength_rounds_table(rows: list[dict[str, Any]], beta_deg: float) -> str:
+    """Markdown table of the strength rounds."""
+    lines = [f"| round | max strain | 99th percentile | tau_max turned by the print (median / 90th pct) | layers within "
+             f"{beta_deg:g}° of tau_max: isotropic / printed | collisions |", "| --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {r['stage']} | {r['max_strain']:.4g} | {r['max_strain_p99']:.4g} | {r['tau_turn_median_deg']:.1f}° / "
+              f"{r['tau_turn_p90_deg']:.1f}° | {100 * r.get('sr_satisfied_iso', 0):.1f} % / "
+              f"{100 * r.get('sr_satisfied_printed', 0):.1f} % | {r['collisions']:,} |" for r in rows]
+    return "\n".join(lines)
 
 
 def draw_strength_figures(figs: Path, arrays: dict[str, np.ndarray], figures: dict[str, Any]) -> dict[str, str]:
@@ -312,6 +360,15 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     sections = {}
     if run.verify is not None and run.verify[1].get("parts"):
         sections["Strength of the printed part"] = strength_table(run.verify[1])
+    share = run.toolpaths.attrs.get("stress_infill_fraction")
+    if share is not None:
+        sections["Stress-following infill"] = (
+            f"{100 * share:.1f} % of the infill length follows the in-layer principal stress of the load case; the rest, "
+            "where it is below toolpath.stress_threshold of the reference stress, is zig-zag." if share > 0 else
+            "No layer has a significant in-layer stress (below toolpath.stress_threshold of the reference stress "
+            "everywhere, or a load case without stress): the infill is zig-zag throughout.")
+    if run.strength_rounds:
+        sections["Strength rounds"] = strength_rounds_table(strength_round_rows(run.strength_rounds, beta_deg), beta_deg)
     if run.attempts:
         rows = collision_resolution(run.samples, run.attempts, alpha_deg)
         for i, row in enumerate(rows):

@@ -137,6 +137,28 @@ def plot_filament_angles(path: Path, angles: dict[str, tuple[np.ndarray, np.ndar
     _save(fig, path)
 
 
+def plot_stress_turn(path: Path, rounds: dict[str, dict[str, np.ndarray]], beta_deg: float) -> None:
+    """Per strength round, in the most stressed voxels: how far the printed material turned tau_max from the
+    isotropic one (left), and the angle of the round's layers to the isotropic and to the printed tau_max (right, the
+    paper's Fig. 19; the beta band in red)."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4))
+    bins = np.linspace(0.0, 90.0, 31)
+    for label, t in rounds.items():
+        a.hist(t["tau_turn_deg"], bins=bins, histtype="step", linewidth=1.8, density=True, label=label)
+        b.hist(t["layer_tau_iso_deg"], bins=bins, histtype="step", linewidth=1.4, linestyle="--", density=True,
+               label=f"{label}: isotropic tau_max")
+        b.hist(t["layer_tau_printed_deg"], bins=bins, histtype="step", linewidth=1.8, density=True,
+               label=f"{label}: printed tau_max")
+    a.set_xlabel("angle between the isotropic and the printed part's tau_max (°)")
+    a.set_ylabel("density")
+    a.legend(fontsize=8)
+    b.axvspan(0.0, beta_deg, color="red", alpha=0.15)
+    b.set_xlabel("angle between the layer and tau_max (°)")
+    b.legend(fontsize=7)
+    fig.suptitle("strength rounds: the stress the print carries (top-stress voxels)")
+    _save(fig, path)
+
+
 def plot_learning_curves(path: Path, curves: dict[str, dict[str, np.ndarray]]) -> None:
     """Loss terms per step (log scale) for one or several runs."""
     fig, ax = plt.subplots(figsize=(7, 4))

@@ -62,23 +62,19 @@ class StressField:
         """Stress tensors (n, 3, 3) at points (n, 3): trilinear weights over the active voxel centres of the cell
         around each point (renormalised); a point with none the nearest active voxel's tensor."""
         points = np.asarray(points, np.float64).reshape(-1, 3)
-        out = np.zeros((len(points), 3, 3))
         if len(points) == 0 or len(self.ijk) == 0:
-            return out
+            return np.zeros((len(points), 3, 3))
         index = self._lookup()
         q = (points - self.origin) / self.spacing - 0.5 + 1.0          # in the padded grid's centre coordinates
         base = np.floor(q).astype(np.int64)
         frac = q - base
-        total = np.zeros(len(points))
-        hi = np.asarray(index.shape) - 1
-        for corner in _CORNERS:
-            c = np.clip(base + corner, 0, hi)
-            vox = index[c[:, 0], c[:, 1], c[:, 2]]
-            w = np.prod(np.where(corner == 1, frac, 1.0 - frac), axis=1) * (vox >= 0)
-            out += w[:, None, None] * self.stress[np.maximum(vox, 0)]
-            total += w
+        c = np.clip(base[:, None, :] + _CORNERS[None], 0, np.asarray(index.shape) - 1)      # (n, 8, 3)
+        vox = index[c[..., 0], c[..., 1], c[..., 2]]                                        # (n, 8)
+        w = np.prod(np.where(_CORNERS[None] == 1, frac[:, None, :], 1.0 - frac[:, None, :]), axis=2) * (vox >= 0)
+        total = w.sum(axis=1)
         found = total > 1e-12
-        out[found] /= total[found, None, None]
+        w[found] /= total[found, None]
+        out = np.matmul(w[:, None, :], self.stress.reshape(-1, 9)[np.maximum(vox, 0)]).reshape(-1, 3, 3)
         if not found.all():
             if self._tree is None:
                 self._tree = cKDTree(self.centres)

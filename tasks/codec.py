@@ -17,7 +17,7 @@ from neuralslicer.model.solid import Solid
 from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.neural.initial_guess import load_user_field
-from neuralslicer.outputs import Attempt, RunResults
+from neuralslicer.outputs import TURN_ARRAYS, Attempt, RunResults, StrengthRound
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
@@ -171,7 +171,8 @@ def read_user_field(ref: ArtifactRef | None) -> tuple[np.ndarray | None, np.ndar
 
 def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
              layers: ArtifactRef, printing: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
-             attempts: list[tuple[str, ArtifactRef, ArtifactRef]]) -> RunResults:
+             attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
+             sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None) -> RunResults:
     """Every step's result of one slice, as the output contract needs them."""
     refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers,
             "toolpaths": printing, "stress_samples": stress, "verify": verify}
@@ -189,4 +190,12 @@ def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage:
         stress=read_stress(stress) if stress is not None else None,
         verify=read(verify) if verify is not None else None,
         attempts=[Attempt(label, read_field(c, f), attrs_of(p)["metrics"]) for label, f, p in attempts],
+        strength_rounds=[read_strength_round(label, p, printed) for label, _, p, printed in sr_rounds or []],
     )
+
+
+def read_strength_round(label: str, printing: ArtifactRef, printed: ArtifactRef) -> StrengthRound:
+    """One strength round: its print's collisions, the FEA of that print (strain figures) and how tau_max turned."""
+    arrays, attrs = read(printed, [f"turn/{k}" for k in TURN_ARRAYS])
+    return StrengthRound(label, int(attrs_of(printing)["metrics"].get("n_collisions", 0)), attrs,
+                         {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items()})

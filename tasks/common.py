@@ -33,6 +33,7 @@ STEP_VERSIONS = {
     "layers": "5",
     "toolpaths": "10",
     "verify": "3",
+    "fea_printed": "1",
     "export": "4",
 }
 

@@ -24,9 +24,9 @@ def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, 
                 samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, layers: ArtifactRef,
                 printing: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,
                 alpha_deg: float, beta_deg: float, attempts: list[tuple[str, ArtifactRef, ArtifactRef]] | None = None,
-                ) -> tuple[dict, dict]:
+                sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None) -> tuple[dict, dict]:
     """Write model.ply, layers/, field.vtu, samples_B.ply, the print, metrics.json, report.md and figures to out_dir."""
-    run = read_run(model, solid, samples, cage, field, layers, printing, stress, verify, attempts or [])
+    run = read_run(model, solid, samples, cage, field, layers, printing, stress, verify, attempts or [], sr_rounds or [])
     metrics = write_outputs(out_dir, run, alpha_deg, beta_deg, robot)
     write_text_atomic(Path(out_dir) / STAMP, out.digest)
     return {}, {"out_dir": str(out_dir), "metrics": metrics}

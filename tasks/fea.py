@@ -5,7 +5,7 @@ import numpy as np
 from prefect import get_run_logger
 
 from neuralslicer.fea import run_fea, stress_samples
-from neuralslicer.fea.verify import verify_field, verify_print
+from neuralslicer.fea.verify import printed_fea, stress_turn, verify_field, verify_print
 from neuralslicer.layers import LayerConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
@@ -39,3 +39,22 @@ def verify_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactR
         return verify_field(solid, read_fea_spec(model), computed, read_fea(fea))
     return verify_print(solid, read_fea_spec(model), computed, read_print(printing)[0], layer_config, toolpath_config,
                         read_fea(fea))
+
+
+@pipeline_task("fea_printed")
+def printed_fea_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef,
+                     field: ArtifactRef, printing: ArtifactRef) -> tuple[dict, dict]:
+    """The FEA of the printed part (transversely isotropic, filaments along the printed toolpaths, layers of the
+    field): stored like the isotropic FEA (a strength round samples its T from it), with the print's strain and how
+    far tau_max turned."""
+    solid, spec, iso = read_solid(model), read_fea_spec(model), read_fea(fea)
+    computed = read_field(read_cage(cage), field)
+    printed = printed_fea(solid, spec, computed, read_print(printing)[0], iso)
+    arrays, attrs = printed["result"].to_arrays()
+    turn = stress_turn(iso, printed["result"], computed, spec.top_fraction)
+    figures = {k: float(printed[k]) for k in ("max_strain", "max_strain_p99", "max_displacement_mm")}
+    figures.update(tau_turn_median_deg=float(np.median(turn["tau_turn_deg"])),
+                   tau_turn_p90_deg=float(np.percentile(turn["tau_turn_deg"], 90)))
+    get_run_logger().info("printed part: max strain %.4g, tau_max turned %.1f° (median) by the printed material",
+                          figures["max_strain"], figures["tau_turn_median_deg"])
+    return {**arrays, **{f"turn/{k}": v for k, v in turn.items()}}, {**attrs, **figures}

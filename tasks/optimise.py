@@ -43,10 +43,11 @@ class StoreCheckpoints:
 
 def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
                      objectives: list[str], config: NeuralConfig, solid: Solid, user_field: np.ndarray | None = None,
-                     user_field_points: np.ndarray | None = None, refine: Refinement | None = None
-                     ) -> tuple[dict, dict]:
+                     user_field_points: np.ndarray | None = None, refine: Refinement | None = None,
+                     warm_start: dict[str, np.ndarray] | None = None) -> tuple[dict, dict]:
     """The field step with store checkpoints and a progress bar; arrays and attrs to store. ``refine``: the
-    collisions of earlier prints to refine L_GC's pool around (and the weights to start from)."""
+    collisions of earlier prints to refine L_GC's pool around (and the weights to start from); ``warm_start``:
+    weights to start from without a refinement (a strength round)."""
     checkpoints = StoreCheckpoints(ArtifactStore(out.store), f"{out.model}/checkpoints/{out.digest}")
     oc = config.optim
     if oc.target_overhang > 0 and "sr" not in objectives:
@@ -59,10 +60,12 @@ def run_optimisation(out: ArtifactRef, cage: Cage, samples: SurfaceSamples, stre
     if refine is not None:
         say(f"optimise: refining the collision term around {len(refine.hits)} colliding waypoints of the print"
             + (", from the field that printed them" if refine.weights else ""))
-    budget = oc.refine.steps if refine is not None and refine.weights else oc.max_steps
+    budget = (oc.refine.steps if refine is not None and refine.weights else
+              min(oc.refine.steps, oc.max_steps) if warm_start is not None else oc.max_steps)
     with Progress("optimise", total=budget) as bar:
         result = optimise_for_solid(
-            solid, cage.vertices, cage.tets, samples, stress, objectives, config, refine=refine, user_field=user_field,
+            solid, cage.vertices, cage.tets, samples, stress, objectives, config, refine=refine, warm_start=warm_start,
+            user_field=user_field,
             user_field_points=user_field_points, save_checkpoint=checkpoints.save, load_checkpoint=checkpoints.load,
             progress=lambda step, info: bar.update(step, **{k: float(info[k]) for k in shown if k in info}),
         )

@@ -85,18 +85,20 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
                warm_start: ArtifactRef | None = None) -> tuple[dict, dict]:
     """The printing field G: the height field without objectives, else the neural optimisation (checkpointed);
     with ``refine_prints``, L_GC's pool refined around those prints' collisions, started from ``warm_start``'s
-    weights (the field that printed the last of them)."""
+    weights (the field that printed the last of them); with ``warm_start`` alone, started from its weights (a
+    strength round with new stress samples)."""
     c = read_cage(cage)
     if not objectives:
         arrays, attrs = ScalarField.height(c.vertices, c.tets).to_arrays()
         return arrays, {**attrs, "objectives": [], "steps": 0}
+    weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
     refine = None
     if refine_prints:
         found = [read_part_collisions(p) for p in refine_prints]
-        weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
         refine = Refinement(np.concatenate([h for h, _ in found]), np.concatenate([w for _, w in found]), weights)
     return run_optimisation(out, c, read_samples(samples), read_stress(stress) if stress is not None else None,
-                            objectives, config, read_solid(model), *read_user_field(user_field), refine=refine)
+                            objectives, config, read_solid(model), *read_user_field(user_field), refine=refine,
+                            warm_start=weights if refine is None else None)
 
 
 @pipeline_task("field_s3")

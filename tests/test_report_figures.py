@@ -157,6 +157,7 @@ def test_draw_figures_embeds_the_operator_pictures(tmp_path: Path, cap_toolpaths
     run = SimpleNamespace(
         samples=samples, lpd_b=normals, layers=SimpleNamespace(meshes=cap_stack(6, 0.5, 6.0, 35.0, 4)),
         toolpaths=tp, program=SimpleNamespace(profile=SimpleNamespace(nozzle=nozzle)), stress=None, verify=None,
+        strength_rounds=[],
         field_history={}, collision_maps={"printed": (tp.xyz, np.zeros(len(tp), bool))},
         print_metrics={"beads": bead_summary(tp, nozzle.bead_thickness_mm)})
     figures = draw_figures(tmp_path / "figures", run, 45.0, 30.0)

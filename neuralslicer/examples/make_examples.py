@@ -1,11 +1,13 @@
 """Generate the shipped example models (run once; outputs are committed next to this script).
 
-    .venv/bin/python -m neuralslicer.examples.make_examples
+    .venv/bin/python -m neuralslicer.examples.make_examples [NAME ...]
 
 Writes, each in its own folder with a ``model.yaml`` spec:
 
 - ``bracket/``: a small closed L-bracket mesh with three bolt holes (genus 3, ~3k faces) and an
   FEA block (fixed against the wall, loaded at the free end): the fast demo model.
+- ``bridge/``: a deck over an arch opening between two feet, in 3-point bending (supports under both feet,
+  a load on top in the middle): the paper's Bridge test case for strength.
 - ``lattice/``: a body-centred-cubic strut lattice (``struts``, segments text file).
 - ``tubes/``: branching bent tubes as a convolution surface (``tubes``, polyline OBJ skeleton).
 - ``shell/``: an open wavy vase surface thickened into a 2 mm shell (``shell``).
@@ -38,23 +40,14 @@ def _cyl_sdf(p: np.ndarray, centre, axis: int, radius: float) -> np.ndarray:
     return np.linalg.norm(p[:, other] - np.asarray(centre)[other], axis=1) - radius
 
 
-def bracket_mesh(voxel: float = 0.5, target_faces: int = 3000) -> trimesh.Trimesh:
-    """L-bracket 60 x 40 x 40 mm, plates 6 mm, bolt holes: marching cubes + quadric decimation."""
+def sdf_mesh(sdf, lo, hi, voxel: float, target_faces: int) -> trimesh.Trimesh:
+    """A closed mesh of ``sdf <= 0`` in the box lo..hi: marching cubes at ``voxel`` + quadric decimation."""
     import pyvista as pv
 
     from neuralslicer.model.grid import level_set_mesh
 
-    def sdf(p: np.ndarray) -> np.ndarray:
-        """Signed distance of the bracket (plates minus bolt holes)."""
-        base = _box_sdf(p, [0, 0, 0], [60, 40, 6])
-        wall = _box_sdf(p, [0, 0, 0], [60, 6, 40])
-        solid = np.minimum(base, wall)
-        holes = np.minimum.reduce([_cyl_sdf(p, [15, 25, 0], 2, 4.0), _cyl_sdf(p, [45, 25, 0], 2, 4.0),
-                                   _cyl_sdf(p, [30, 0, 26], 1, 5.0)])
-        return np.maximum(solid, -holes)
-
-    lo = np.array([-3.0, -3.0, -3.0])
-    n = np.ceil((np.array([63.0, 43.0, 43.0]) - lo) / voxel).astype(int) + 1
+    lo = np.asarray(lo, np.float64)
+    n = np.ceil((np.asarray(hi, np.float64) - lo) / voxel).astype(int) + 1
     grid = np.stack(np.meshgrid(*[lo[i] + voxel * np.arange(n[i]) for i in range(3)], indexing="ij"), -1)
     values = sdf(grid.reshape(-1, 3)).reshape(tuple(n))
     v, f = level_set_mesh(values, lo, voxel)
@@ -65,6 +58,34 @@ def bracket_mesh(voxel: float = 0.5, target_faces: int = 3000) -> trimesh.Trimes
     if mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def bracket_mesh(voxel: float = 0.5, target_faces: int = 3000) -> trimesh.Trimesh:
+    """L-bracket 60 x 40 x 40 mm, plates 6 mm, bolt holes: marching cubes + quadric decimation."""
+
+    def sdf(p: np.ndarray) -> np.ndarray:
+        """Signed distance of the bracket (plates minus bolt holes)."""
+        base = _box_sdf(p, [0, 0, 0], [60, 40, 6])
+        wall = _box_sdf(p, [0, 0, 0], [60, 6, 40])
+        solid = np.minimum(base, wall)
+        holes = np.minimum.reduce([_cyl_sdf(p, [15, 25, 0], 2, 4.0), _cyl_sdf(p, [45, 25, 0], 2, 4.0),
+                                   _cyl_sdf(p, [30, 0, 26], 1, 5.0)])
+        return np.maximum(solid, -holes)
+
+    return sdf_mesh(sdf, [-3.0, -3.0, -3.0], [63.0, 43.0, 43.0], voxel, target_faces)
+
+
+def bridge_mesh(voxel: float = 0.5, target_faces: int = 4000) -> trimesh.Trimesh:
+    """Bridge 120 x 20 x 30 mm: a deck over a half-elliptic arch opening (semi-axes 50 x 16 mm) between two feet."""
+
+    def sdf(p: np.ndarray) -> np.ndarray:
+        """Signed distance (exact outside the arch) of the box minus the elliptic arch opening."""
+        box = _box_sdf(p, [0, 0, 0], [120, 20, 30])
+        q = (p[:, [0, 2]] - [60.0, 0.0]) / [50.0, 16.0]
+        arch = (np.linalg.norm(q, axis=1) - 1.0) * 16.0          # an approximate distance, exact on the crown
+        return np.maximum(box, -arch)
+
+    return sdf_mesh(sdf, [-3.0, -3.0, -3.0], [123.0, 23.0, 33.0], voxel, target_faces)
 
 
 def bcc_lattice(cells: tuple[int, int, int], size: float, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -157,6 +178,27 @@ fea:
   loads:
     - box: [[-1, 38, -1], [61, 41, 7]]
       force_n: [0, 0, -50]
+""")
+
+
+def write_bridge(d: Path) -> None:
+    """The 3-point-bending example (the paper's Bridge test): its mesh and model.yaml in folder d."""
+    bridge_mesh().export(d / "bridge.stl")
+    (d / "model.yaml").write_text("""# Bridge in 3-point bending (the paper's Bridge test case): a 120 x 20 x 30 mm deck over an arch opening,
+# on supports under both feet (held left, a roller right), pressed down on top in the middle.
+up: z
+components:
+  - type: mesh
+    file: bridge.stl
+fea:
+  material: {youngs_modulus_mpa: 2000, poisson_ratio: 0.3}
+  supports:
+    - box: [[-1, -1, -1], [6, 21, 0.5]]
+    - box: [[114, -1, -1], [121, 21, 0.5]]
+      fix: [false, false, true]
+  loads:
+    - box: [[55, -1, 29.5], [65, 21, 31]]
+      force_n: [0, 0, -300]
 """)
 
 
@@ -299,17 +341,19 @@ components:
 """)
 
 
-EXAMPLES = {"bracket": write_bracket, "lattice": write_lattice, "tubes": write_tubes, "shell": write_shell,
-            "hybrid": write_hybrid, "points": write_points}
+EXAMPLES = {"bracket": write_bracket, "bridge": write_bridge, "lattice": write_lattice, "tubes": write_tubes,
+            "shell": write_shell, "hybrid": write_hybrid, "points": write_points}
 
 
-def main() -> None:
-    """Write every example folder."""
-    for name, write in EXAMPLES.items():
+def main(names: list[str] | None = None) -> None:
+    """Write the named example folders (all without names)."""
+    for name in names or list(EXAMPLES):
         d = HERE / name
         d.mkdir(exist_ok=True)
-        write(d)
+        EXAMPLES[name](d)
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(sys.argv[1:])

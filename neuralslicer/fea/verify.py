@@ -22,6 +22,7 @@ from neuralslicer.fea.samples import stress_field, top_stress_indices
 from neuralslicer.fea.solver import FEAResult, run_fea, solve_on_grid
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import LayerConfig, slice_layers
+from neuralslicer.metrics import strength_angles
 from neuralslicer.model.solid import Solid
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
@@ -252,3 +253,24 @@ def verify_print(solid: Solid, fea_spec: FEASpec, field: ScalarField, toolpaths:
     arrays, figures = _collect(parts, labels, reference)
     return arrays, {**figures, "n_planar_layers": len(flat.meshes),
                     "n_planar_waypoints": {k: len(v) for k, v in planar.items()}}
+
+
+def printed_fea(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, toolpaths: Toolpaths,
+                reference: FEAResult) -> dict[str, Any]:
+    """The anisotropic FEA of the part printed with ``toolpaths`` on the layers of ``field`` (``verify_layers`` with
+    the printed filaments): its stress is where the load goes in the printed part, the stress a strength round
+    re-optimises against, and its strain is the print's."""
+    return verify_layers(solid, fea_spec, _field_lpd(field), tangent_at=printed_tangents(toolpaths), reference=reference)
+
+
+def stress_turn(reference: FEAResult, printed: FEAResult, field: ScalarField, top_fraction: float = 0.10
+                ) -> dict[str, np.ndarray]:
+    """How the printed material turned tau_max, at the voxels of the isotropic FEA's top ``top_fraction`` (its T):
+    ``tau_turn_deg`` the angle between the isotropic and the printed part's tau_max, ``layer_tau_iso_deg`` and
+    ``layer_tau_printed_deg`` the angle of the field's layers to each (the paper's Fig. 19: 0° is a layer along the
+    stress, the SR goal)."""
+    idx = top_stress_indices(reference, top_fraction)
+    iso, aniso = reference.tau_max[idx], printed.tau_max[idx]
+    lpd = _unit(_field_lpd(field)(reference.grid.centres[idx]), "lpd")
+    return {"tau_turn_deg": np.degrees(np.arccos(np.clip(np.abs(np.sum(iso * aniso, axis=1)), 0.0, 1.0))),
+            "layer_tau_iso_deg": strength_angles(iso, lpd), "layer_tau_printed_deg": strength_angles(aniso, lpd)}

@@ -420,7 +420,8 @@ def optimise_field(
 
 def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
                        stress: StressSamples | None, objectives: list[str], config: NeuralConfig,
-                       refine: Refinement | None = None, **options: Any) -> FieldResult:
+                       refine: Refinement | None = None, warm_start: Mapping[str, np.ndarray] | None = None,
+                       **options: Any) -> FieldResult:
     """The field step: ``optimise_field`` for the objectives asked for, with L_GC's pool of points drawn
     from the solid when gc is one of them; ``options`` are optimise_field's (initial guess, callbacks).
 
@@ -428,7 +429,9 @@ def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.nd
     (:func:`~neuralslicer.neural.head_collision.refine_pool` with ``optim.refine``'s spacing, radius and cap)
     and, with the earlier weights, the run starts from them for at most ``optim.refine.steps`` steps (at
     ``optim.refine.lr``); without weights it starts afresh on the refined pool. Needs the gc objective.
-    ``result.attrs["refinement"]`` records what was added.
+    ``result.attrs["refinement"]`` records what was added. warm_start : weights to start from without a
+    refinement (a strength round: new stress samples, at most min(optim.refine.steps, optim.max_steps) steps at
+    optim.refine.lr).
     """
     cfg = config.for_objectives(objectives)
     pool = None
@@ -443,16 +446,20 @@ def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.nd
         base = len(pool.points)
         pool = refine_pool(pool, refine.hits, refine.witnesses, solid.H, spacing=rc.spacing_factor * pool.spacing,
                            radius=rc.radius_factor * pool.spacing, max_points=rc.max_points, seed=cfg.optim.seed)
-        if refine.weights is not None:
-            optim = cfg.optim.model_copy(update={"max_steps": rc.steps, "lr": rc.lr or cfg.optim.lr})
-            cfg = cfg.model_copy(update={"optim": optim})
-            options["warm_start"] = refine.weights
+        warm_start = refine.weights
         witnesses = np.zeros((0, 3)) if refine.witnesses is None else np.asarray(refine.witnesses, float).reshape(-1, 3)
         record = {"hits": int(len(np.asarray(refine.hits).reshape(-1, 3))),
                   "witnesses": int(np.isfinite(witnesses).all(axis=1).sum()),
                   "base_points": base, "added_points": pool.n_refined, "links": int(len(pool.links)),
                   "fine_spacing": pool.fine_spacing, "radius": pool.link_radius,
                   "warm_start": refine.weights is not None}
+    if warm_start is not None:
+        # a refinement keeps its own budget; a strength round at most the step budget asked for
+        rc = cfg.optim.refine
+        steps = rc.steps if refine is not None else min(rc.steps, cfg.optim.max_steps)
+        cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"max_steps": steps,
+                                                                              "lr": rc.lr or cfg.optim.lr})})
+        options["warm_start"] = warm_start
     if pool is not None:
         options["solid_tets"] = solid_tets(solid, cage_vertices, cage_tets)
     result = optimise_field(cage_vertices, cage_tets, samples, stress, config=cfg, platform_z=solid.platform_z,
