@@ -111,8 +111,8 @@ def largest_gap(tp, layer: trimesh.Trimesh, n: int = 30_000) -> float:
 
 
 def test_in_plane_stress_is_projected_tau_max_for_a_uniaxial_stress() -> None:
-    """sigma = s tau tau^T on a plane with normal n: direction P tau / |P tau|, magnitude s |P tau|^2, anisotropy 1;
-    isotropic and pure shear in-plane states have anisotropy 0."""
+    """sigma = s tau tau^T on a plane with normal n: direction P tau / |P tau|, magnitude s |P tau|^2, coherence 1;
+    an isotropic in-plane state has coherence 0, pure shear 1 (its principal axes are well defined)."""
     rng = np.random.default_rng(0)
     tau = rng.normal(size=(50, 3))
     tau /= np.linalg.norm(tau, axis=1, keepdims=True)
@@ -123,16 +123,20 @@ def test_in_plane_stress_is_projected_tau_max_for_a_uniaxial_stress() -> None:
     p = tau - np.sum(tau * n, axis=1, keepdims=True) * n
     assert np.allclose(np.abs(np.sum(direction * p, axis=1)), np.linalg.norm(p, axis=1), atol=1e-9)
     assert np.allclose(magnitude, np.abs(s) * np.sum(p * p, axis=1))
-    assert np.allclose(anisotropy, 1.0)
+    assert np.allclose(anisotropy, 1.0)                      # coherence
     assert np.allclose(np.sum(direction * n, axis=1), 0.0, atol=1e-12)
     iso = np.diag([2.0, 2.0, 5.0])[None]
     shear = np.array([[[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]])
     z = np.array([[0.0, 0.0, 1.0]])
     assert si.in_plane_stress(iso, z)[2][0] == pytest.approx(0.0)
-    assert si.in_plane_stress(shear, z)[2][0] == pytest.approx(0.0)
-    # sigma = diag(3, -1): the in-plane principal stress of largest magnitude is 3 along x, anisotropy (3 - 1) / 3
-    d, mag, an = si.in_plane_stress(np.diag([3.0, -1.0, 7.0])[None], z)
-    assert abs(d[0, 0]) == pytest.approx(1.0) and mag[0] == pytest.approx(3.0) and an[0] == pytest.approx(2 / 3)
+    assert si.in_plane_stress(shear, z)[2][0] == pytest.approx(1.0)
+    # sigma = diag(3, 1): the in-plane principal stress of largest magnitude is 3 along x, coherence (3 - 1) / (3 + 1)
+    d, mag, coh = si.in_plane_stress(np.diag([3.0, 1.0, 7.0])[None], z)
+    assert abs(d[0, 0]) == pytest.approx(1.0) and mag[0] == pytest.approx(3.0) and coh[0] == pytest.approx(0.5)
+    # the region measure is l1 - l2: 2 here, 0 for the isotropic state, 2 for the unit pure shear
+    assert si.stress_region(np.diag([3.0, 1.0, 7.0])[None], z, 1.0, 1.0)[0] == pytest.approx(1.0)
+    assert si.stress_region(iso, z, 1.0, 1.0)[0] == pytest.approx(-1.0)
+    assert si.stress_region(shear, z, 1.0, 1.0)[0] == pytest.approx(1.0)
     # ... and diag(1, -3): 3 along y (compression counts as much as tension)
     d, mag, _ = si.in_plane_stress(np.diag([1.0, -3.0, 0.0])[None], z)
     assert abs(d[0, 1]) == pytest.approx(1.0) and mag[0] == pytest.approx(3.0)
@@ -233,7 +237,7 @@ def test_isotropic_points_and_holes_do_not_break_the_patch(field: Analytic, hole
         layer = disc_with_hole(radius=15.0, hole=2.0, centre=(-9.0, 9.0))
     tp = toolpaths([layer], 0.0, ToolpathConfig(infill="stress"), stress=field)
     mid, d, length = printed_moves(tp)
-    t, _, aniso = si.in_plane_stress(field.tensor_at(mid), np.tile([0.0, 0.0, 1.0], (len(mid), 1)))
+    t, _, _ = si.in_plane_stress(field.tensor_at(mid), np.tile([0.0, 0.0, 1.0], (len(mid), 1)))
     far = (np.linalg.norm(mid[:, :2], axis=1) > 3.0) & inside(layer, mid, 2.0)
     aligned = np.abs(np.sum(d * t, axis=1)) > np.cos(np.radians(10))
     assert np.average(aligned[far], weights=length[far]) > 0.97

@@ -200,6 +200,11 @@ fea:
     - box: [[55, -1, 29.5], [65, 21, 31]]
       force_n: [0, 0, -300]
 """)
+    (d / "config.yaml").write_text("""# The paper's Bridge test: strength reinforcement only (sr), with the print head terms (gc, ca) so that the
+# program is collision-free; the arch opening then needs supports, as the paper's Bridge had (PVA).
+#   neuralslicer slice neuralslicer/examples/bridge/model.yaml --config neuralslicer/examples/bridge/config.yaml --verify
+objectives: [sr, gc, ca]
+""")
 
 
 def write_lattice(d: Path) -> None:

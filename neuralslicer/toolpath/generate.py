@@ -14,8 +14,8 @@ from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.geometry import (ElementSet, Patch, TriangleSet, boundary_distance, boundary_vertices,
                                             layer_lpd, layer_thickness, refine_patch, split_patches)
 from neuralslicer.toolpath.isolines import chain_segments, isoline_points, resample_polylines
-from neuralslicer.toolpath.stress_infill import (StressPotential, delaunay_flips, dyadic_levels, in_plane_stress,
-                                                 stress_potential)
+from neuralslicer.toolpath.stress_infill import (StressPotential, delaunay_flips, dyadic_levels, stress_potential,
+                                                 stress_region)
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
 
@@ -146,10 +146,8 @@ def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathCon
         return paths + _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index)
     paths += _stress_lines(stress, d0, cfg, patch_id, layer_index, surface)
     if (stress.potential.region < 0).any():
-        # the regular pattern where the in-layer stress is negligible
-        _, magnitude, _ = in_plane_stress(stress.stress.tensor_at(patch.vertices), patch.lpd)
-        region = magnitude / (cfg.stress_threshold * stress.stress.reference_mpa) - 1.0
-        paths += _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index, -region)
+        # the regular pattern where the in-layer stress is negligible (the region refined with the patch)
+        paths += _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index, -patch.values)
     return paths
 
 
@@ -270,10 +268,12 @@ def densify_segments(segments: IndexArray, points: dict[str, np.ndarray], max_le
 
 
 def _order_paths(paths: list[_Path], start: FloatArray, alternate_loops: bool = False,
-                 loop_parity: int = 0) -> list[_Path]:
+                 loop_parity: int = 0, continue_within: float = 0.0) -> list[_Path]:
     """Greedy nearest-path ordering with reversal (open paths) or rotation (closed loops).
 
-    With ``alternate_loops`` every second closed loop (counting from ``loop_parity``) is reversed.
+    With ``alternate_loops`` every second closed loop (counting from ``loop_parity``) is reversed. After a stress
+    line, the nearest unused stress line of the same patch starting within ``continue_within`` goes next, even
+    where another path starts nearer (the zig-zag of the region beside it): so the stress lines join up.
     """
     if not paths:
         return []
@@ -292,13 +292,20 @@ def _order_paths(paths: list[_Path], start: FloatArray, alternate_loops: bool = 
     cpos = np.concatenate(cand_pos)
     tree = cKDTree(cxyz)
     used = np.zeros(len(paths), bool)
+    kind = np.array([p.kind for p in paths])
+    patch = np.array([p.patch for p in paths])
     cur = np.asarray(start, np.float64)
     ordered = []
     k = min(32, len(cxyz))
     for _ in range(len(paths)):
-        _, idx = tree.query(cur, k=k)
-        idx = np.atleast_1d(idx)
-        free = idx[~used[cpath[idx]]]
+        dist, idx = tree.query(cur, k=k)
+        dist, idx = np.atleast_1d(dist), np.atleast_1d(idx)
+        unused = ~used[cpath[idx]]
+        free = idx[unused]
+        if ordered and ordered[-1].kind == STRESS and continue_within > 0:
+            near = free[(kind[cpath[free]] == STRESS) & (patch[cpath[free]] == ordered[-1].patch)
+                        & (dist[unused] <= continue_within)]
+            free = near[:1] if len(near) else free
         if len(free):
             c = int(free[0])
         else:
@@ -420,51 +427,89 @@ class _Columns:
 @dataclass
 class _StressSetup:
     """What a patch's stress-following infill needs: the triangulation its scalar is solved on (the layer's triangles
-    made Delaunay and split to ``stress_resolution``), the scalar, how far that triangulation leaves the layer, and
-    the stress field (for the region left to the regular pattern)."""
+    made Delaunay and split to ``stress_resolution``), the scalar and how far that triangulation leaves the layer."""
 
     mesh: Patch
     potential: StressPotential
     offset: float
-    stress: StressLike
 
 
-def _stress_setup(patch: Patch, stress: StressLike, cfg: ToolpathConfig) -> _StressSetup | None:
-    """The stress scalar of a patch, or None where its in-layer stress is nowhere significant."""
-    _, magnitude, _ = in_plane_stress(stress.tensor_at(patch.vertices), patch.lpd)
-    if not (magnitude >= cfg.stress_threshold * stress.reference_mpa).any() or not stress.reference_mpa > 0:
-        return None
-    faces, offset = delaunay_flips(patch.vertices, patch.faces)
-    mesh = refine_patch(replace(patch, faces=faces, distance=None), cfg.stress_resolution)
-    pot = stress_potential(mesh.vertices, mesh.faces, mesh.lpd, stress, cfg.stress_threshold,
-                           cfg.line_width / cfg.infill_density)
-    return None if pot is None else _StressSetup(mesh, pot, offset, stress)
+#: patches whose stress scalars are solved together, at most this many vertices at a time
+_BATCH_VERTICES = 200_000
 
 
-def _layer_paths(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int,
-                 stress: StressLike | None = None) -> tuple[list[_Path], int, int, int]:
-    """One layer's paths in print order from ``start`` (patches split, refined, filled, zigzags joined),
-    the patches filled and skipped, and the closed loops among the paths."""
+def _stress_setups(patches: list[Patch], stress: StressLike, cfg: ToolpathConfig
+                   ) -> tuple[list[_StressSetup | None], list[FloatArray | None]]:
+    """The stress scalars of patches (of all layers), solved together a batch at a time (one triangulation, one
+    sparse solve: the work per patch is numpy's, not Python's), and each patch's stress region per vertex (how much
+    its in-layer stress prefers a direction over the significance threshold, minus 1: >= 0 where the infill follows
+    it); None for a patch where the in-layer stress is nowhere significant."""
+    setups: list[_StressSetup | None] = [None] * len(patches)
+    reference = float(stress.reference_mpa)
+    if not reference > 0 or not patches:
+        return setups, [None] * len(patches)
+    cuts = np.cumsum([len(p.vertices) for p in patches])[:-1]
+    tensors = np.split(stress.tensor_at(np.concatenate([p.vertices for p in patches])), cuts)
+    regions = [r if (r >= 0).any() else None for r in np.split(
+        stress_region(np.concatenate(tensors), np.concatenate([p.lpd for p in patches]), cfg.stress_threshold,
+                      reference), cuts)]
+    todo = [i for i, r in enumerate(regions) if r is not None]
+    while todo:
+        n = max(1, int(np.searchsorted(np.cumsum([len(patches[i].vertices) for i in todo]), _BATCH_VERTICES)))
+        batch, todo = todo[:n], todo[n:]
+        offsets = np.cumsum([0] + [len(patches[i].vertices) for i in batch])
+        group = np.repeat(np.arange(len(batch), dtype=np.float64), np.diff(offsets))
+        union = Patch(np.concatenate([patches[i].vertices for i in batch]),
+                      np.concatenate([patches[i].faces + o for i, o in zip(batch, offsets)]),
+                      np.concatenate([patches[i].lpd for i in batch]),
+                      values=np.column_stack([group, np.concatenate([tensors[i] for i in batch]).reshape(-1, 9)]))
+        faces, offset = delaunay_flips(union.vertices, union.faces)
+        # the stress tensors are carried through the refinement, linear along the layer's edges
+        mesh = refine_patch(replace(union, faces=faces), cfg.stress_resolution)
+        pot = stress_potential(mesh.vertices, mesh.faces, mesh.lpd, mesh.values[:, 1:].reshape(-1, 3, 3), reference,
+                               cfg.stress_threshold, cfg.line_width / cfg.infill_density,
+                               np.rint(mesh.values[:, 0]).astype(np.int64))
+        if pot is None:
+            continue
+        for i, (used, piece) in zip(batch, pot.pieces()):
+            if len(piece.faces) and (piece.region >= 0).any():
+                setups[i] = _StressSetup(Patch(mesh.vertices[used], piece.origin[piece.faces], mesh.lpd[used]), piece,
+                                         offset)
+    return setups, regions
+
+
+def _layer_patches(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig) -> tuple[list[Patch], int]:
+    """A layer's patches (connected components, cleaned) big enough to fill, and how many were too small."""
     verts, faces = np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64)
     lpd = layer_lpd(layer)
     if lpd.shape != verts.shape:
         raise InputError(f"layers[{li}]", "vertex_attributes['lpd'] must be (n_vertices, 3)")
+    patches = split_patches(verts, faces, lpd)
+    kept = [p for p in patches if p.area >= cfg.min_patch_area]
+    return kept, len(patches) - len(kept)
+
+
+def _layer_paths(patches: list[Patch], li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int,
+                 stress: list[tuple[_StressSetup | None, FloatArray | None]] | None = None
+                 ) -> tuple[list[_Path], int]:
+    """One layer's paths in print order from ``start`` (patches refined, filled, zigzags joined) and the closed
+    loops among them; ``stress``: per patch its stress scalar and region (stress-following infill)."""
     all_paths: list[_Path] = []
     filled: list[TriangleSet] = []
-    skipped = 0
-    for patch in split_patches(verts, faces, lpd):
-        if patch.area < cfg.min_patch_area:
-            skipped += 1
-            continue
+    for k, patch in enumerate(patches):
         filled.append(TriangleSet(patch.vertices, patch.faces))
-        lines = _stress_setup(patch, stress, cfg) if cfg.infill == "stress" and stress is not None else None
+        lines, region = stress[k] if stress is not None else (None, None)
+        if lines is not None and (lines.potential.region < 0).any():
+            # the zig-zag's region, carried through the refinement (linear on the layer's triangles)
+            patch = replace(patch, values=region)
         fine = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
         all_paths += _patch_paths(fine, len(filled) - 1, li, cfg, filled[-1], lines)
     if not all_paths:
-        return [], 0, skipped, 0
+        return [], 0
     start = start if start is not None else all_paths[0].xyz[0]
-    ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops), filled, cfg)
-    return ordered, len(filled), skipped, sum(p.closed for p in all_paths)
+    gap_max = cfg.join_factor * cfg.line_width / cfg.infill_density
+    ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops, gap_max), filled, cfg)
+    return ordered, sum(p.closed for p in all_paths)
 
 
 def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray, cur: FloatArray | None,
@@ -507,13 +552,22 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
     cols = _Columns()
     below: TriangleSet | None = None
     cur = None
-    path_id = n_patches = n_skipped = n_loops = 0
+    path_id = n_loops = 0
+    layer_patches = [_layer_patches(layer, li, cfg) if len(layer.faces) else ([], 0) for li, layer in enumerate(layers)]
+    n_patches = sum(len(p) for p, _ in layer_patches)
+    n_skipped = sum(k for _, k in layer_patches)
+    per_patch = None
+    if cfg.infill == "stress" and stress is not None:
+        setups, regions = _stress_setups([p for patches, _ in layer_patches for p in patches], stress, cfg)
+        cuts = np.cumsum([0] + [len(p) for p, _ in layer_patches])
+        per_patch = [list(zip(setups[a:b], regions[a:b])) for a, b in zip(cuts[:-1], cuts[1:])]
     infill_mm = {INFILL: 0.0, STRESS: 0.0}
     for li, layer in enumerate(layers):
         if len(layer.faces) == 0:
             continue
-        ordered, filled, skipped, loops = _layer_paths(layer, li, cfg, cur, n_loops, stress)
-        n_patches, n_skipped, n_loops = n_patches + filled, n_skipped + skipped, n_loops + loops
+        ordered, loops = _layer_paths(layer_patches[li][0], li, cfg, cur, n_loops,
+                                      None if per_patch is None else per_patch[li])
+        n_loops += loops
         for p in ordered:
             if p.kind in infill_mm:
                 infill_mm[p.kind] += float(np.linalg.norm(np.diff(p.xyz, axis=0), axis=1).sum())

@@ -20,6 +20,8 @@ class Patch:
     lpd: FloatArray
     #: straight-line distance of each vertex to the boundary (n,), where already measured
     distance: FloatArray | None = None
+    #: per-vertex values (n,) or (n, k) that refinement interpolates linearly (a midpoint gets its edge's mean)
+    values: FloatArray | None = None
 
     @property
     def area(self) -> float:
@@ -95,8 +97,8 @@ def _length2(vectors: FloatArray) -> FloatArray:
     return np.einsum("ij,ij->i", vectors, vectors)
 
 
-def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.ndarray, max_edge: float
-                 ) -> tuple[FloatArray, IndexArray, FloatArray]:
+def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.ndarray, max_edge: float,
+                 values: FloatArray | None = None) -> tuple[FloatArray, IndexArray, FloatArray, FloatArray | None]:
     """Split at their midpoints the edges longer than ``max_edge`` of the faces in ``split_face``.
 
     Conforming: a split edge is split in both of its faces, and each face is cut by the template of
@@ -112,11 +114,13 @@ def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.n
     split[eid[split_face].ravel()] = True
     split &= long_edge
     if not split.any():
-        return v, f, lpd
+        return v, f, lpd, values
     mid = np.full(len(ukey), -1, np.int64)
     mid[split] = len(v) + np.arange(int(split.sum()))
     v = np.concatenate([v, 0.5 * (v[ua[split]] + v[ub[split]])])
     lpd = np.concatenate([lpd, _normalise(lpd[ua[split]] + lpd[ub[split]])])
+    if values is not None:
+        values = np.concatenate([values, 0.5 * (values[ua[split]] + values[ub[split]])])
     mf = mid[eid]                                                 # (m, 3): midpoint of edge k = (k, k+1)
     count = (mf >= 0).sum(axis=1)
     # rotate each face so that its template is canonical: one split edge at slot 0, or the one
@@ -138,7 +142,7 @@ def _split_edges(v: FloatArray, f: IndexArray, lpd: FloatArray, split_face: np.n
         out += [np.stack(t, axis=1)[sel] for t in tris]
     three = count == 3
     out += [np.stack(t, axis=1)[three] for t in ((v0, m0, m2), (m0, v1, m1), (m2, m1, v2), (m0, m1, m2))]
-    return v, np.concatenate(out).astype(np.int64), lpd
+    return v, np.concatenate(out).astype(np.int64), lpd, values
 
 
 def refine_patch(patch: Patch, max_edge: float, band: float = np.inf, max_rounds: int = 12) -> Patch:
@@ -152,7 +156,7 @@ def refine_patch(patch: Patch, max_edge: float, band: float = np.inf, max_rounds
     With a finite band the result carries the straight-line boundary distance of its vertices
     (``Patch.distance``): the input's vertices are measured once, each round only its midpoints.
     """
-    v, f, lpd = patch.vertices, patch.faces, patch.lpd
+    v, f, lpd, values = patch.vertices, patch.faces, patch.lpd, patch.values
     d: FloatArray | None = None
     if np.isfinite(band):
         _, bedges = boundary_vertices(f)
@@ -178,13 +182,13 @@ def refine_patch(patch: Patch, max_edge: float, band: float = np.inf, max_rounds
         if not todo.any():
             break
         n_old = len(v)
-        v, f, lpd = _split_edges(v, f, lpd, todo, max_edge)
+        v, f, lpd, values = _split_edges(v, f, lpd, todo, max_edge, values)
         if len(v) == n_old:
             break
         if d is not None:
             d = np.concatenate([d, nearest.distance(v[n_old:])])
     f = np.concatenate(done + [f])
-    return Patch(np.asarray(v, np.float64), np.asarray(f, np.int64), lpd, d)
+    return Patch(np.asarray(v, np.float64), np.asarray(f, np.int64), lpd, d, values)
 
 
 def boundary_vertices(faces: IndexArray) -> tuple[IndexArray, IndexArray]:

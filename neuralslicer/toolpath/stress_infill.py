@@ -30,7 +30,6 @@ from scipy import sparse
 from scipy.sparse.csgraph import breadth_first_order, connected_components, dijkstra, minimum_spanning_tree
 from scipy.sparse.linalg import spsolve
 
-from neuralslicer.stress_field import StressLike
 from neuralslicer.types import FloatArray, IndexArray
 
 #: weight of a triangle with no significant stress in the direction fit, relative to a fully stressed one
@@ -54,25 +53,42 @@ def tangent_basis(normals: FloatArray) -> tuple[FloatArray, FloatArray]:
     return b1, np.cross(normals, b1)
 
 
-def in_plane_stress(tensors: FloatArray, normals: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The dominant in-plane principal stress of tensors (n, 3, 3) on planes with unit normals (n, 3).
-
-    Returns the unit direction (n, 3) in the plane of the principal stress of largest magnitude of the
-    restricted tensor ``P sigma P``, that magnitude (n,) in MPa, and the anisotropy (n,) in [0, 1]:
-    ``(|l_a| - |l_b|) / |l_a|`` of the two in-plane principal stresses (1: uniaxial, 0: isotropic or pure
-    shear, where no direction is preferred).
-    """
+def _in_plane(tensors: FloatArray, normals: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+                                                                FloatArray]:
+    """A tangent basis b1, b2 (n, 3) of the planes with unit normals (n, 3) and the restricted tensors' components
+    in it: a = b1 sigma b1, b = b1 sigma b2, c = b2 sigma b2 (n,)."""
     b1, b2 = tangent_basis(normals)
     a = np.einsum("ni,nij,nj->n", b1, tensors, b1)
     c = np.einsum("ni,nij,nj->n", b2, tensors, b2)
     b = np.einsum("ni,nij,nj->n", b1, tensors, b2)
+    return b1, b2, a, b, c
+
+
+def in_plane_stress(tensors: FloatArray, normals: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The dominant in-plane principal stress of tensors (n, 3, 3) on planes with unit normals (n, 3).
+
+    Returns the unit direction (n, 3) in the plane of the principal stress of largest magnitude of the
+    restricted tensor ``P sigma P``, that magnitude (n,) in MPa, and the coherence (n,) in [0, 1] of the in-plane
+    principal axes, ``(l1 - l2) / (|l1| + |l2|)`` (l1 >= l2): 1 for a uniaxial stress or pure shear, 0 for an
+    in-plane isotropic one, where no direction is preferred.
+    """
+    b1, b2, a, b, c = _in_plane(tensors, normals)
     m = 0.5 * (a + c)
     r = np.hypot(0.5 * (a - c), b)
     theta = 0.5 * np.arctan2(2.0 * b, a - c) + np.where(m < 0, 0.5 * np.pi, 0.0)
     direction = np.cos(theta)[:, None] * b1 + np.sin(theta)[:, None] * b2
-    magnitude = np.abs(m) + r
-    anisotropy = np.where(magnitude > 0, 2.0 * np.minimum(np.abs(m), r) / np.where(magnitude > 0, magnitude, 1.0), 0.0)
-    return direction, magnitude, anisotropy
+    total = np.abs(m + r) + np.abs(m - r)
+    coherence = np.where(total > 0, 2.0 * r / np.where(total > 0, total, 1.0), 0.0)
+    return direction, np.abs(m) + r, coherence
+
+
+def stress_region(tensors: FloatArray, normals: FloatArray, threshold: float, reference: float) -> FloatArray:
+    """Per point (n,): how much the in-layer stress prefers a direction, ``l1 - l2`` of its two in-plane principal
+    stresses (twice the largest in-plane shear stress), over ``threshold`` x ``reference``, minus 1: >= 0 where the
+    infill follows the stress. A uniaxial stress counts in full; an in-layer isotropic one (a Poisson-induced
+    biaxial state, or no stress) not at all, however large."""
+    _, _, a, b, c = _in_plane(tensors, normals)
+    return 2.0 * np.hypot(0.5 * (a - c), b) / (threshold * reference) - 1.0
 
 
 def face_frames(vertices: FloatArray, faces: IndexArray) -> tuple[FloatArray, FloatArray]:
@@ -127,49 +143,61 @@ def delaunay_flips(vertices: FloatArray, faces: IndexArray, max_dihedral_deg: fl
     """
     f = np.asarray(faces, np.int64).copy()
     v = np.asarray(vertices, np.float64)
+    n = len(v)
     cos_max = np.cos(np.radians(max_dihedral_deg))
     offset = 0.0
+    pairs, edges = face_adjacency(f)
+    pending = np.ones(len(pairs), bool)                      # pairs whose faces changed, or that lost a tie
     for _ in range(rounds):
-        pairs, edges = face_adjacency(f)
-        if not len(pairs):
+        e = np.flatnonzero(pending)
+        if not len(e):
             break
-        a, b = pairs[:, 0], pairs[:, 1]
+        a, b = pairs[e, 0], pairs[e, 1]
         # orient each edge as it runs in face a: (p, q) with face a = (p, q, c) and face b = (q, p, d)
-        la = np.argmax(f[a] == edges[:, [0]], axis=1)
-        forward = f[a, (la + 1) % 3] == edges[:, 1]
-        p = np.where(forward, edges[:, 0], edges[:, 1])
-        q = np.where(forward, edges[:, 1], edges[:, 0])
+        la = np.argmax(f[a] == edges[e, :1], axis=1)
+        forward = f[a, (la + 1) % 3] == edges[e, 1]
+        p = np.where(forward, edges[e, 0], edges[e, 1])
+        q = np.where(forward, edges[e, 1], edges[e, 0])
         c = f[a].sum(axis=1) - p - q
         d = f[b].sum(axis=1) - p - q
-        angle_c = _angle(v[p] - v[c], v[q] - v[c])
-        angle_d = _angle(v[p] - v[d], v[q] - v[d])
+        angle = _angle(v[p] - v[c], v[q] - v[c]) + _angle(v[p] - v[d], v[q] - v[d])
         n1, n2 = np.cross(v[d] - v[p], v[c] - v[p]), np.cross(v[c] - v[q], v[d] - v[q])
         l1, l2 = np.linalg.norm(n1, axis=1), np.linalg.norm(n2, axis=1)
-        normals, _ = face_frames(v, f)
-        na, nb = normals[a], normals[b]
-        ok = ((angle_c + angle_d > np.pi + 1e-9) & (np.einsum("ij,ij->i", na, nb) > cos_max)
+        na, _ = face_frames(v, f[a])
+        nb, _ = face_frames(v, f[b])
+        ok = ((angle > np.pi + 1e-9) & (np.einsum("ij,ij->i", na, nb) > cos_max)
               & (l1 > 1e-12 * np.maximum(l2, 1e-300)) & (l2 > 1e-12 * np.maximum(l1, 1e-300))
               & (np.einsum("ij,ij->i", n1, na) > 0) & (np.einsum("ij,ij->i", n2, na) > 0) & (c != d))
         if not ok.any():
             break
-        score = np.where(ok, angle_c + angle_d, -np.inf)
+        # each face flips at most its worst edge (ties broken by the edge's index, so no face is taken twice)
+        score = np.where(ok, angle + 1e-9 * e / len(pairs), -np.inf)
         best = np.full(len(f), -np.inf)
         np.maximum.at(best, a, score)
         np.maximum.at(best, b, score)
-        take = ok & (score >= best[a]) & (score >= best[b])
-        # ties: one flip per face
-        used = np.zeros(len(f), bool)
-        for e in np.flatnonzero(take):
-            if used[a[e]] or used[b[e]]:
-                take[e] = False
-            else:
-                used[a[e]] = used[b[e]] = True
-        t = np.flatnonzero(take)
+        t = np.flatnonzero(ok & (score >= best[a]) & (score >= best[b]))
         cr = np.cross(v[d[t]] - v[c[t]], v[q[t]] - v[p[t]])
         gap = np.abs(np.einsum("ij,ij->i", cr, v[p[t]] - v[c[t]])) / np.maximum(np.linalg.norm(cr, axis=1), 1e-300)
         offset = max(offset, float(gap.max(initial=0.0)))
-        f[a[t]] = np.stack([p[t], d[t], c[t]], axis=1)
-        f[b[t]] = np.stack([d[t], q[t], c[t]], axis=1)
+        a, b, p, q, c, d = a[t], b[t], p[t], q[t], c[t], d[t]
+        f[a] = np.stack([p, d, c], axis=1)
+        f[b] = np.stack([d, q, c], axis=1)
+        # the adjacency follows: the flipped edge joins c-d; edge q-c moved from face a to b, edge p-d from b to a
+        key = np.sort(edges, axis=1) @ np.array([n, 1])
+        order = np.argsort(key)
+        for (x, y), old, new in (((q, c), a, b), ((p, d), b, a)):
+            k = np.minimum(x, y) * n + np.maximum(x, y)
+            where = np.minimum(np.searchsorted(key[order], k), len(order) - 1)
+            found = key[order][where] == k
+            idx = order[where[found]]
+            side = (pairs[idx] == old[found, None]).argmax(axis=1)
+            pairs[idx, side] = new[found]
+        edges[e[t]] = np.stack([np.minimum(c, d), np.maximum(c, d)], axis=1)
+        pending[:] = False
+        pending[e[ok]] = True                                        # lost a tie or flipped: look again
+        touched = np.zeros(len(f), bool)
+        touched[np.r_[a, b]] = True
+        pending |= touched[pairs[:, 0]] | touched[pairs[:, 1]]
     return f, offset
 
 
@@ -217,25 +245,32 @@ def boundary_loops(faces: IndexArray) -> list[IndexArray]:
 
 
 def branch_cuts(vertices: FloatArray, faces: IndexArray, pairs: IndexArray, edges: IndexArray, field: FloatArray,
-                min_circulation: float) -> np.ndarray:
+                min_circulation: float, groups: IndexArray | None = None) -> np.ndarray:
     """Face pairs (k,) bool to cut open so that the oriented line field (m, 3) can be integrated on every piece.
 
-    The cut holds the sign seams (pairs whose lines disagree), a shortest edge path from every seam end inside the
-    patch (a singular point) to the outer (longest) boundary loop, and one from every hole that a seam or such a
+    The cut holds the sign seams (pairs whose lines disagree), a shortest edge path from every seam end inside a
+    patch (a singular point) to its outer (longest) boundary loop, and one from every hole that a seam or such a
     path touches, or around which the field circulates by more than ``min_circulation`` (mm). Each piece is then
-    simply connected and its field has one sign: the isolines fit it and may end on the cut.
+    simply connected and its field has one sign: the isolines fit it and may end on the cut. ``groups`` (n,): the
+    patch of each vertex when the mesh holds several (each has its own outer loop).
     """
     n = len(vertices)
     cut = np.einsum("ij,ij->i", field[pairs[:, 0]], field[pairs[:, 1]]) < 0
     loops = boundary_loops(faces)
     if not loops:
         return cut
+    groups = np.zeros(n, np.int64) if groups is None else np.asarray(groups, np.int64)
+    outer, seen = [], set()
+    for i, loop in enumerate(loops):                               # longest first: the first of each patch is outer
+        if int(groups[loop[0]]) not in seen:
+            seen.add(int(groups[loop[0]]))
+            outer.append(i)
     on_boundary = np.zeros(n, bool)
     on_boundary[np.concatenate(loops)] = True
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     graph = sparse.coo_matrix((np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1), (e[:, 0], e[:, 1])),
                               shape=(n, n)).tocsr()
-    dist, pred = _multi_source(graph, loops[0])
+    dist, pred = _multi_source(graph, np.concatenate([loops[i] for i in outer]))
     seam_degree = np.bincount(edges[cut].ravel(), minlength=n)
     tips = np.flatnonzero((seam_degree == 1) & ~on_boundary & np.isfinite(dist))
     paths = [_trace(pred, int(t)) for t in tips]
@@ -244,7 +279,7 @@ def branch_cuts(vertices: FloatArray, faces: IndexArray, pairs: IndexArray, edge
     for path in paths:
         touched[path] = True
     circulation = _hole_circulation(vertices, faces, field)
-    for hole in loops[1:]:
+    for hole in (loop for i, loop in enumerate(loops) if i not in outer):
         if (touched[hole].any() or abs(circulation[hole].sum()) > min_circulation) and np.isfinite(dist[hole]).any():
             paths.append(_trace(pred, int(hole[np.argmin(dist[hole])])))
     if paths:
@@ -296,15 +331,15 @@ def orient_line_field(lines: FloatArray, confidence: FloatArray, pairs: IndexArr
     cos = np.abs(np.einsum("ij,ij->i", lines[a], lines[b]))
     cost = 1e-6 + (1.0 - cos) + 1e-3 * (1.0 - np.minimum(confidence[a], confidence[b]))
     graph = sparse.coo_matrix((cost, (a, b)), shape=(m, m)).tocsr()
-    tree = minimum_spanning_tree(graph)
-    tree = tree + tree.T
-    n_comp, label = connected_components(tree, directed=False)
-    pred = np.full(m, -1, np.int64)
+    tree = minimum_spanning_tree(graph).tocoo()
+    _, label = connected_components(tree, directed=False)
     roots = np.unique(label, return_index=True)[1]
-    for root in roots:
-        _, p = breadth_first_order(tree, int(root), directed=False, return_predecessors=True)
-        reached = p >= 0
-        pred[reached] = p[reached]
+    # one breadth-first pass from a node m joined to a root of every tree of the forest
+    rows = np.r_[tree.row, np.full(len(roots), m)]
+    cols = np.r_[tree.col, roots]
+    forest = sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m + 1, m + 1)).tocsr()
+    _, pred = breadth_first_order(forest, m, directed=False, return_predecessors=True)
+    pred = np.where((pred < 0) | (pred == m), -1, pred)[:m].astype(np.int64)
     # parity of sign flips from each face to its root, by pointer jumping over the tree
     has = pred >= 0
     parity = np.zeros(m, bool)
@@ -355,12 +390,14 @@ def dyadic_order(k: IndexArray, depth: int) -> IndexArray:
 
 @dataclass
 class StressPotential:
-    """The stress-following scalar of one patch, on the patch cut open where the line field cannot be integrated.
+    """The stress-following scalar of one patch (or of several, ``group``), on the patch cut open where the line field
+    cannot be integrated.
 
     faces (m, 3): the patch's faces over the cut vertices; origin (n',): the patch vertex of each cut vertex;
     phi (n',): the fitted scalar (infill lines are its isolines); rho (n',): log2 of |grad phi| over the reference
-    gradient; region (n,): per patch vertex, the in-plane stress over the significance threshold, minus 1 (>= 0:
-    infill follows the stress there); ref_gradient: the reference |grad phi|; n_cut_edges: edges cut open (sign seams and holes).
+    gradient of its patch; region (n,): per patch vertex, how much the in-layer stress prefers a direction over the
+    significance threshold, minus 1 (>= 0: infill follows the stress there); ref_gradient (k,): each patch's
+    reference |grad phi|; group (n,): the patch of each patch vertex (0 for one patch); n_cut_edges: edges cut open.
     """
 
     faces: IndexArray
@@ -368,8 +405,24 @@ class StressPotential:
     phi: FloatArray
     rho: FloatArray
     region: FloatArray
-    ref_gradient: float
+    ref_gradient: FloatArray
+    group: IndexArray
     n_cut_edges: int = 0
+
+    def pieces(self) -> list[tuple[IndexArray, StressPotential]]:
+        """Every patch alone, in group order: its vertices (n_g,) among the patch vertices, and its potential over
+        them."""
+        face_group = self.group[self.origin[self.faces[:, 0]]]
+        order = np.argsort(face_group, kind="stable")
+        bounds = np.searchsorted(face_group[order], np.arange(len(self.ref_gradient) + 1))
+        out = []
+        for g in range(len(self.ref_gradient)):
+            cut_used, faces = np.unique(self.faces[order[bounds[g]:bounds[g + 1]]], return_inverse=True)
+            used, origin = np.unique(self.origin[cut_used], return_inverse=True)
+            out.append((used, StressPotential(faces.reshape(-1, 3).astype(np.int64), origin.astype(np.int64),
+                                              self.phi[cut_used], self.rho[cut_used], self.region[used],
+                                              self.ref_gradient[[g]], np.zeros(len(used), np.int64))))
+        return out
 
 
 def smooth_face_tensors(tensors: FloatArray, areas: FloatArray, pairs: IndexArray, rounds: int) -> FloatArray:
@@ -389,53 +442,60 @@ def smooth_face_tensors(tensors: FloatArray, areas: FloatArray, pairs: IndexArra
     return flat.reshape(m, 3, 3)
 
 
-def stress_potential(vertices: FloatArray, faces: IndexArray, lpd: FloatArray, stress: StressLike,
-                     threshold: float, spacing: float, smoothing: int = 2) -> StressPotential | None:
-    """The scalar whose isolines follow the in-plane principal stress on a patch; None when no vertex of the
-    patch has a significant in-plane stress (``threshold`` x the stress field's reference magnitude).
+def stress_potential(vertices: FloatArray, faces: IndexArray, lpd: FloatArray, tensors: FloatArray, reference: float,
+                     threshold: float, spacing: float, groups: IndexArray | None = None, smoothing: int = 2
+                     ) -> StressPotential | None:
+    """The scalar whose isolines follow the in-plane principal stress (``tensors`` (n, 3, 3) at the vertices) on a
+    patch, or on several at once (``groups`` (n,): the patch of each vertex; they share no vertex); None when no
+    vertex has a significant in-plane stress (``threshold`` x the ``reference`` magnitude).
 
     The line field is oriented along a spanning tree and the patch cut open where it cannot be integrated
     (:func:`branch_cuts`: sign seams, paths from singular points and holes to the outer boundary; holes around
     which the field circulates by more than half a line ``spacing``), so that the least-squares fit sees an
-    integrable field (up to its curl).
+    integrable field (up to its curl). One sparse solve serves all the patches.
     """
-    reference = float(stress.reference_mpa)
     if not reference > 0 or len(faces) == 0:
         return None
-    tensors = stress.tensor_at(vertices)
-    _, mag_v, _ = in_plane_stress(tensors, _unit(lpd))
-    region = mag_v / (threshold * reference) - 1.0
+    groups = np.zeros(len(vertices), np.int64) if groups is None else np.asarray(groups, np.int64)
+    region = stress_region(tensors, _unit(lpd), threshold, reference)
     if not (region >= 0).any():
         return None
     normals, areas = face_frames(vertices, faces)
     pairs, edges = face_adjacency(faces)
     face_tensors = smooth_face_tensors(tensors[faces].mean(axis=1), areas, pairs, smoothing)
-    t_f, mag_f, aniso_f = in_plane_stress(face_tensors, normals)
-    confidence = np.minimum(1.0, mag_f / reference) * aniso_f
+    t_f, mag_f, coherence_f = in_plane_stress(face_tensors, normals)
+    confidence = np.minimum(1.0, mag_f / reference) * coherence_f
     u = orient_line_field(np.cross(normals, t_f), confidence, pairs)
-    cut = branch_cuts(vertices, faces, pairs, edges, u, 0.5 * spacing)
+    cut = branch_cuts(vertices, faces, pairs, edges, u, 0.5 * spacing, groups)
     cut_faces, origin = cut_mesh(faces, pairs, edges, cut, len(vertices))
-    cut_vertices = vertices[origin]
-    G = gradient_operator(cut_vertices, cut_faces, normals, areas)
+    G = gradient_operator(vertices[origin], cut_faces, normals, areas)
     phi = fit_potential(G, u, areas * (_FLOOR_WEIGHT + confidence), along=t_f, stiffness=_DIRECTION_STIFFNESS)
     g_f = np.linalg.norm((G @ phi).reshape(-1, 3), axis=1)
-    sig = mag_f >= threshold * reference
-    ref = _weighted_median(g_f[sig], areas[sig]) if sig.any() else _weighted_median(g_f, areas)
+    face_group = groups[faces[:, 0]]
+    ref = _group_medians(g_f, areas, face_group, mag_f >= threshold * reference, int(groups.max()) + 1)
     n = len(origin)
     acc = np.bincount(cut_faces.ravel(), weights=np.repeat(areas * g_f, 3), minlength=n)
     wsum = np.bincount(cut_faces.ravel(), weights=np.repeat(areas, 3), minlength=n)
     g_v = acc / np.where(wsum > 0, wsum, 1.0)
-    rho = np.log2(np.maximum(g_v, 1e-12 * max(ref, 1e-300)) / max(ref, 1e-300))
-    return StressPotential(cut_faces, origin, phi, rho, region, float(ref), int(cut.sum()))
+    ref_v = ref[groups[origin]]
+    rho = np.log2(np.maximum(g_v, 1e-12 * ref_v) / ref_v)
+    return StressPotential(cut_faces, origin, phi, rho, region, ref, groups, int(cut.sum()))
 
 
-def _weighted_median(values: FloatArray, weights: FloatArray) -> float:
-    """The weighted median of values (n,) with weights (n,)."""
-    order = np.argsort(values)
-    c = np.cumsum(weights[order])
-    if not len(c) or c[-1] <= 0:
-        return float(np.median(values)) if len(values) else 1.0
-    return float(values[order][np.searchsorted(c, 0.5 * c[-1])])
+def _group_medians(values: FloatArray, weights: FloatArray, group: IndexArray, preferred: np.ndarray, n_groups: int
+                   ) -> FloatArray:
+    """Per group (n_groups,), the weighted median of values (m,) over its ``preferred`` (m,) bool entries, over all of
+    its entries where it has none (1 for an empty group)."""
+    use = preferred | ~np.isin(group, np.unique(group[preferred]))
+    out = np.ones(n_groups)
+    order = np.lexsort((values[use], group[use]))
+    v, w, g = values[use][order], weights[use][order], group[use][order]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    ends = np.r_[starts[1:], len(g)]
+    for a, b in zip(starts, ends):
+        c = np.cumsum(w[a:b])
+        out[g[a]] = v[a + min(int(np.searchsorted(c, 0.5 * c[-1])), b - a - 1)] if c[-1] > 0 else np.median(v[a:b])
+    return np.maximum(out, 1e-300)
 
 
 @dataclass
@@ -447,10 +507,10 @@ class LevelSet:
 
 
 def dyadic_levels(pot: StressPotential, spacing: float, depth: int, phase: float, keep: np.ndarray) -> LevelSet:
-    """The levels of ``phi`` that can carry a line somewhere on the patch: multiples of the finest step
+    """The levels of ``phi`` that can carry a line somewhere on the (one) patch: multiples of the finest step
     ``spacing * ref / 2^j`` that the gradient range in ``keep`` (n',) bool (per cut vertex) needs (at most ``depth`` halvings and
     doublings), shifted by ``phase`` base steps; orders run from ``-j_fine`` (finest) to ``j_coarse``."""
-    base = spacing * pot.ref_gradient
+    base = spacing * float(pot.ref_gradient[0])
     rho = pot.rho[keep] if keep.any() else pot.rho
     j_lo = int(np.clip(np.ceil(rho.min() - 0.5), -depth, 0))
     j_hi = int(np.clip(np.ceil(rho.max() - 0.5), 0, depth))
