@@ -1,11 +1,13 @@
 """Benchmark: what stress-following infill costs the toolpath step (toolpaths, beads, collision check, tilt, motion).
 
-    .venv/bin/python benchmarks/bench_stress_infill.py [--cases bracket,bridge,ring] [--run runs/demo] [--repeats 3]
+    .venv/bin/python benchmarks/bench_stress_infill.py [--cases bracket,bridge,ring] [--run bracket=runs/demo,ring=runs/ring]
+                                                       [--repeats 3]
 
 For each case the model's FEA gives the stress field, and the same layers are planned (``plan_print``) with the
 zig-zag and with the stress-following infill, alternately, ``--repeats`` times each; the best wall and CPU time of
-each is kept. Layers: planar (G = z on a default cage), and with ``--run`` the curved layers a slice of the bracket
-wrote to that output folder (``layers/*.ply``, e.g. ``make demo``'s ``runs/demo``). The ring
+each is kept. Layers: planar (G = z on a default cage), and with ``--run CASE=DIR`` the curved layers a slice of that
+case wrote to its output folder (``layers/*.ply``: ``make demo``'s ``runs/demo`` for the bracket, a default
+``neuralslicer slice ../shared/data/ring.tet --up y --out runs/ring`` for the ring). The ring
 (from ../shared/data, skipped without it) gets a load case: the platform held, 100 N down on its top 2 mm.
 
 Prints a table with the load average and writes ``benchmarks/results/bench_stress_infill.json``.
@@ -89,7 +91,7 @@ def time_plans(layers, platform_z: float, stress, repeats: int) -> dict:  # noqa
 
 
 def run_case(name: str, run: Path | None, repeats: int) -> list[dict]:
-    """The rows of one case: planar layers, and the bracket's curved layers exported to ``run``."""
+    """The rows of one case: planar layers, and the curved layers a slice of it exported to ``run``."""
     from neuralslicer.config import SliceConfig
     from neuralslicer.fea import run_fea
     from neuralslicer.fea.samples import stress_field
@@ -103,7 +105,7 @@ def run_case(name: str, run: Path | None, repeats: int) -> list[dict]:
     stress = stress_field(run_fea(solid, spec.fea), spec.fea.top_fraction)
     rows = [{"case": name, "layers": "planar", **time_plans(planar_layers(solid, SliceConfig()), solid.platform_z,
                                                             stress, repeats)}]
-    if run is not None and name == "bracket":
+    if run is not None:
         rows.append({"case": name, "layers": f"curved ({run})",
                      **time_plans(exported_layers(run), solid.platform_z, stress, repeats)})
     return rows
@@ -113,10 +115,11 @@ def main() -> None:
     """Run the cases, print the table, write the JSON."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", default="bracket,bridge,ring")
-    ap.add_argument("--run", type=Path, default=None, help="an output folder of a bracket slice (its curved layers)")
+    ap.add_argument("--run", default="", help="CASE=DIR,...: output folders of slices of the cases (curved layers)")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
-    rows = [r for name in args.cases.split(",") for r in run_case(name, args.run, args.repeats)]
+    runs = {k: Path(v) for k, v in (item.split("=", 1) for item in args.run.split(",") if item)}
+    rows = [r for name in args.cases.split(",") for r in run_case(name, runs.get(name), args.repeats)]
     load = os.getloadavg()
     print(f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} on {os.cpu_count()} CPUs")
     print(f"{'case':8} {'layers':10} {'zig-zag s':>10} {'stress s':>9} {'added':>7} {'added CPU':>9} {'paths z/s':>12}")
