@@ -111,8 +111,8 @@ def largest_gap(tp, layer: trimesh.Trimesh, n: int = 30_000) -> float:
 
 
 def test_in_plane_stress_is_projected_tau_max_for_a_uniaxial_stress() -> None:
-    """sigma = s tau tau^T on a plane with normal n: direction P tau / |P tau|, magnitude s |P tau|^2, coherence 1;
-    an isotropic in-plane state has coherence 0, pure shear 1 (its principal axes are well defined)."""
+    """sigma = s tau tau^T on a plane with normal n: direction P tau / |P tau|, magnitude s |P tau|^2, decisiveness 1;
+    an isotropic in-plane state and pure shear 0 (no principal stress is the larger)."""
     rng = np.random.default_rng(0)
     tau = rng.normal(size=(50, 3))
     tau /= np.linalg.norm(tau, axis=1, keepdims=True)
@@ -123,14 +123,14 @@ def test_in_plane_stress_is_projected_tau_max_for_a_uniaxial_stress() -> None:
     p = tau - np.sum(tau * n, axis=1, keepdims=True) * n
     assert np.allclose(np.abs(np.sum(direction * p, axis=1)), np.linalg.norm(p, axis=1), atol=1e-9)
     assert np.allclose(magnitude, np.abs(s) * np.sum(p * p, axis=1))
-    assert np.allclose(anisotropy, 1.0)                      # coherence
+    assert np.allclose(anisotropy, 1.0)                      # decisiveness
     assert np.allclose(np.sum(direction * n, axis=1), 0.0, atol=1e-12)
     iso = np.diag([2.0, 2.0, 5.0])[None]
     shear = np.array([[[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]])
     z = np.array([[0.0, 0.0, 1.0]])
     assert si.in_plane_stress(iso, z)[2][0] == pytest.approx(0.0)
-    assert si.in_plane_stress(shear, z)[2][0] == pytest.approx(1.0)
-    # sigma = diag(3, 1): the in-plane principal stress of largest magnitude is 3 along x, coherence (3 - 1) / (3 + 1)
+    assert si.in_plane_stress(shear, z)[2][0] == pytest.approx(0.0)
+    # sigma = diag(3, 1): the in-plane principal stress of largest magnitude is 3 along x, decisiveness (3 - 1) / (3 + 1)
     d, mag, coh = si.in_plane_stress(np.diag([3.0, 1.0, 7.0])[None], z)
     assert abs(d[0, 0]) == pytest.approx(1.0) and mag[0] == pytest.approx(3.0) and coh[0] == pytest.approx(0.5)
     # the region measure is l1 - l2: 2 here, 0 for the isotropic state, 2 for the unit pure shear

@@ -34,6 +34,8 @@ from neuralslicer.types import FloatArray, IndexArray
 
 #: weight of a triangle with no significant stress in the direction fit, relative to a fully stressed one
 _FLOOR_WEIGHT = 0.05
+#: neighbouring triangles whose oriented lines make a larger angle than this (cos 60°) are cut apart
+_SEAM_COS = 0.5
 #: how much more the fit holds the direction of the scalar's gradient than its length (see ``fit_potential``)
 _DIRECTION_STIFFNESS = 100.0
 
@@ -68,18 +70,19 @@ def in_plane_stress(tensors: FloatArray, normals: FloatArray) -> tuple[FloatArra
     """The dominant in-plane principal stress of tensors (n, 3, 3) on planes with unit normals (n, 3).
 
     Returns the unit direction (n, 3) in the plane of the principal stress of largest magnitude of the
-    restricted tensor ``P sigma P``, that magnitude (n,) in MPa, and the coherence (n,) in [0, 1] of the in-plane
-    principal axes, ``(l1 - l2) / (|l1| + |l2|)`` (l1 >= l2): 1 for a uniaxial stress or pure shear, 0 for an
-    in-plane isotropic one, where no direction is preferred.
+    restricted tensor ``P sigma P``, that magnitude (n,) in MPa, and how decisively it is the larger one (n,) in
+    [0, 1], ``(|l_a| - |l_b|) / (|l_a| + |l_b|)``: 1 for a uniaxial stress, 0 for an in-plane isotropic one and for
+    pure shear, where the two principal directions carry as much (the choice flips from one to the other where
+    the mean stress changes sign: near the neutral axis of a bent beam).
     """
     b1, b2, a, b, c = _in_plane(tensors, normals)
     m = 0.5 * (a + c)
     r = np.hypot(0.5 * (a - c), b)
     theta = 0.5 * np.arctan2(2.0 * b, a - c) + np.where(m < 0, 0.5 * np.pi, 0.0)
     direction = np.cos(theta)[:, None] * b1 + np.sin(theta)[:, None] * b2
-    total = np.abs(m + r) + np.abs(m - r)
-    coherence = np.where(total > 0, 2.0 * r / np.where(total > 0, total, 1.0), 0.0)
-    return direction, np.abs(m) + r, coherence
+    total = np.abs(m + r) + np.abs(m - r)                  # |l_a| + |l_b|
+    decisive = np.where(total > 0, np.abs(np.abs(m + r) - np.abs(m - r)) / np.where(total > 0, total, 1.0), 0.0)
+    return direction, np.abs(m) + r, decisive
 
 
 def stress_region(tensors: FloatArray, normals: FloatArray, threshold: float, reference: float) -> FloatArray:
@@ -248,14 +251,16 @@ def branch_cuts(vertices: FloatArray, faces: IndexArray, pairs: IndexArray, edge
                 min_circulation: float, groups: IndexArray | None = None) -> np.ndarray:
     """Face pairs (k,) bool to cut open so that the oriented line field (m, 3) can be integrated on every piece.
 
-    The cut holds the sign seams (pairs whose lines disagree), a shortest edge path from every seam end inside a
+    The cut holds the seams (pairs whose lines disagree in sign or turn by more than 60°), a shortest edge path from every seam end inside a
     patch (a singular point) to its outer (longest) boundary loop, and one from every hole that a seam or such a
     path touches, or around which the field circulates by more than ``min_circulation`` (mm). Each piece is then
     simply connected and its field has one sign: the isolines fit it and may end on the cut. ``groups`` (n,): the
     patch of each vertex when the mesh holds several (each has its own outer loop).
     """
     n = len(vertices)
-    cut = np.einsum("ij,ij->i", field[pairs[:, 0]], field[pairs[:, 1]]) < 0
+    # a seam: neighbours whose lines disagree in sign, or turn by more than 60° (a line where the choice of the
+    # larger principal stress jumps, as across the neutral axis of a bent beam: the lines end there)
+    cut = np.einsum("ij,ij->i", field[pairs[:, 0]], field[pairs[:, 1]]) < _SEAM_COS
     loops = boundary_loops(faces)
     if not loops:
         return cut
@@ -463,8 +468,9 @@ def stress_potential(vertices: FloatArray, faces: IndexArray, lpd: FloatArray, t
     normals, areas = face_frames(vertices, faces)
     pairs, edges = face_adjacency(faces)
     face_tensors = smooth_face_tensors(tensors[faces].mean(axis=1), areas, pairs, smoothing)
-    t_f, mag_f, coherence_f = in_plane_stress(face_tensors, normals)
-    confidence = np.minimum(1.0, mag_f / reference) * coherence_f
+    t_f, mag_f, decisive_f = in_plane_stress(face_tensors, normals)
+    # where the larger in-plane principal stress is not clearly larger, the fit follows the neighbours
+    confidence = np.minimum(1.0, mag_f / reference) * decisive_f
     u = orient_line_field(np.cross(normals, t_f), confidence, pairs)
     cut = branch_cuts(vertices, faces, pairs, edges, u, 0.5 * spacing, groups)
     cut_faces, origin = cut_mesh(faces, pairs, edges, cut, len(vertices))
