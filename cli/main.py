@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -147,10 +148,28 @@ def make_parser() -> ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's time limit, an eviction, ``timeout``), handled as Ctrl-C is."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    """SIGTERM handler: stop the run the way Ctrl-C does (checkpoints stay, the rerun resumes)."""
+    raise Terminated()
+
+
+def _on_sigterm() -> None:
+    """Handle SIGTERM as Ctrl-C (in the main thread; Prefect's flow engine hands it back here when its run ends)."""
+    try:
+        signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # pragma: no cover - not the main thread (an embedding application)
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `neuralslicer` command."""
     parser = make_parser()
     args = parser.parse_args(argv)
+    _on_sigterm()
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
@@ -163,7 +182,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"neuralslicer: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, Terminated) or isinstance(exc.__context__, Terminated):
+            print("neuralslicer: terminated (SIGTERM); run the same command again to resume", file=sys.stderr)
+            return 128 + signal.SIGTERM
         print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
 

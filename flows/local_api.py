@@ -34,6 +34,22 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+#: the server process: on Linux it asks for SIGTERM when the command that started it dies, however it dies
+#: (PR_SET_PDEATHSIG), leaves at once if that happened already, then runs uvicorn with the remaining arguments
+_LAUNCHER = """
+import ctypes, os, runpy, signal, sys
+parent = int(sys.argv[1])
+try:
+    ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)
+except (OSError, AttributeError):
+    pass
+if os.getppid() != parent:
+    sys.exit(0)
+sys.argv = ["uvicorn", *sys.argv[2:]]
+runpy.run_module("uvicorn", run_name="__main__", alter_sys=True)
+"""
+
+
 class LocalApi:
     """A local Prefect API server process, booting in the background from construction on."""
 
@@ -58,11 +74,13 @@ class LocalApi:
         self.port = free_port()
         env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1",
                **get_current_settings().to_environment_variables(exclude_unset=True)}
+        # a session of its own: a SIGTERM or Ctrl-C sent to the command's process group stops the flow, which then
+        # reports its end to this server; the server goes when the command does (``stop``, or with it)
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--app-dir", str(Path(prefect.__module_path__).parent), "--factory",
-             "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(self.port),
+            [sys.executable, "-c", _LAUNCHER, str(os.getpid()), "--app-dir", str(Path(prefect.__module_path__).parent),
+             "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(self.port),
              "--log-level", "error", "--lifespan", "on"],
-            env=env, stdout=subprocess.DEVNULL, stderr=self._log)
+            env=env, stdout=subprocess.DEVNULL, stderr=self._log, start_new_session=True)
 
     def wait(self, timeout_s: float) -> None:
         """Block until the API answers its health check; RuntimeError (Prefect's words) after ``timeout_s``."""

@@ -31,7 +31,7 @@ STEP_VERSIONS = {
     "field_s3": "1",
     "field_blend": "1",
     "layers": "5",
-    "toolpaths": "9",
+    "toolpaths": "10",
     "verify": "2",
     "export": "3",
 }

@@ -140,6 +140,52 @@ def test_ctrl_c_says_one_line_exits_130_and_the_rerun_resumes(case, tmp_path):
     assert comparable(out) == case["reference"]
 
 
+def _resumed_from(out: Path) -> list[int | None]:
+    """The step each optimisation of the run's store resumed from (None: started afresh)."""
+    from storage import ArtifactStore
+
+    root = out / "store.zarr"
+    model = next(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("_"))
+    store = ArtifactStore(root)
+    return [store.attrs(f"{model}/field/{d}").get("resumed_from_step") for d in store.children(f"{model}/field")]
+
+
+def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_resumes(case, tmp_path):
+    """What a scheduler does at its time limit: SIGTERM to the whole process group of a run with its own local
+    Prefect server, inside the optimisation. One line, exit 143 within 10 s, no traceback; the server was not in
+    the group (the flow reported its end to it) and is gone with the command; the rerun resumes from a checkpoint
+    and gives the uninterrupted result."""
+    import psutil
+
+    out = tmp_path / "run"
+    args = [*case["args"], "--out", str(out)]
+    env = cli_env(tmp_path, own_server=True)
+    proc = cli(args, env)
+    seen: list[str] = []
+    for line in proc.stderr:
+        seen.append(line.rstrip())
+        if line.startswith("optimise: ") and "/20 (" in line and not line.startswith("optimise: 1/"):
+            break
+    server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "uvicorn" in " ".join(c.cmdline())]
+    assert server and all(os.getpgid(c.pid) != proc.pid for c in server), "the local server shares the group"
+    sent = time.monotonic()
+    os.killpg(proc.pid, signal.SIGTERM)
+    rest = proc.stderr.read().splitlines()
+    assert proc.wait(timeout=60) == 143, "\n".join((seen + rest)[-30:])
+    assert time.monotonic() - sent < 10.0
+    assert [ln for ln in rest if ln.startswith("neuralslicer:")] == [
+        "neuralslicer: terminated (SIGTERM); run the same command again to resume"], "\n".join(rest[-30:])
+    assert not any("Traceback" in ln or "onnection refused" in ln for ln in rest), "\n".join(rest[-30:])
+    psutil.wait_procs(server, timeout=10)
+    assert not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in server)
+    assert not (out / "metrics.json").exists()
+    rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+                           timeout=600)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert any(step for step in _resumed_from(out))
+    assert comparable(out) == case["reference"]
+
+
 def test_a_read_only_working_directory_builds_the_cage(tmp_path, monkeypatch):
     """fTetWild writes a debug file into the working directory; where it cannot (here /proc, read-only even for
     root), the cage is built all the same."""

@@ -35,13 +35,14 @@ N_LEVELS = 5
 class PrintedMaterial:
     """Material points in (cube, time) order with their cubes' lists and the pyramid of first points.
 
-    points : (m, 3) float64, sorted by (finest cube, time); time : (m,) int64 printing rank that laid each;
+    columns : (3, m) float64, the points' x, y, z, sorted by (finest cube, time) (``points`` is its (m, 3) view);
+    time : (m,) int64 printing rank that laid each;
     start : (n_cubes + 1,) int64 where each finest cube's points begin; first[level] : flat int64 array over that
     level's cubes of ``time * stride + index`` of the first point laid in the cube (``EMPTY`` if none);
     top : (n_ranks + 1,) highest z of the points laid before each rank (-inf before any).
     """
 
-    points: FloatArray
+    columns: FloatArray
     time: IndexArray
     origin: FloatArray
     cell: float
@@ -86,7 +87,7 @@ class PrintedMaterial:
             d, f = _pooled(first[-1].reshape(dims[-1]))
             dims.append(d)
             first.append(f)
-        return cls(points, time, origin, cell, dims, start, first, top, stride, n_ranks)
+        return cls(np.ascontiguousarray(points.T), time, origin, cell, dims, start, first, top, stride, n_ranks)
 
     @classmethod
     def of_toolpaths(cls, tp: Toolpaths, cell: float = CELL_SIZE) -> "PrintedMaterial":
@@ -96,6 +97,11 @@ class PrintedMaterial:
         bottom = top - tp.thickness[on, None] * tp.axis[on]
         rank = np.arange(int(on.sum()), dtype=np.int64)
         return cls.of_points(np.concatenate([top, bottom]), np.concatenate([rank, rank]), len(rank), cell)
+
+    @property
+    def points(self) -> FloatArray:
+        """The points (m, 3) in (cube, time) order."""
+        return self.columns.T
 
     def visible_at(self, tp: Toolpaths) -> IndexArray:
         """Per waypoint of ``tp`` (n,), the ranks it sees: the printing waypoints before it (``time < visible``)."""
