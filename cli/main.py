@@ -165,8 +165,21 @@ def _on_sigterm() -> None:
         pass
 
 
+def _leave(code: int) -> int:
+    """Leave a run stopped by Ctrl-C or SIGTERM now: the exit handlers run (the local server stops), the
+    interpreter's teardown does not (native extensions would report the objects the interrupted frames still hold)."""
+    import atexit
+    import os
+
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `neuralslicer` command."""
+    """Entry point of the `neuralslicer` command (``argv``: the arguments of an in-process call, which returns the
+    exit status also when interrupted)."""
     parser = make_parser()
     args = parser.parse_args(argv)
     _on_sigterm()
@@ -185,9 +198,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         if isinstance(exc, Terminated) or isinstance(exc.__context__, Terminated):
             print("neuralslicer: terminated (SIGTERM); run the same command again to resume", file=sys.stderr)
-            return 128 + signal.SIGTERM
-        print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
+            code = 128 + signal.SIGTERM
+        else:
+            print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
+            code = 130
+        return code if argv is not None else _leave(code)
 
 
 if __name__ == "__main__":

@@ -164,8 +164,8 @@ def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_
     seen: list[str] = []
     for line in proc.stderr:
         seen.append(line.rstrip())
-        if line.startswith("optimise: ") and "/20 (" in line and not line.startswith("optimise: 1/"):
-            break
+        if line.startswith("optimise: ") and "/20 (" in line and int(line.split()[1].split("/")[0]) >= 6:
+            break                                  # checkpoints (every 2 steps) are on disk
     server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "uvicorn" in " ".join(c.cmdline())]
     assert server and all(os.getpgid(c.pid) != proc.pid for c in server), "the local server shares the group"
     sent = time.monotonic()
@@ -173,9 +173,8 @@ def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_
     rest = proc.stderr.read().splitlines()
     assert proc.wait(timeout=60) == 143, "\n".join((seen + rest)[-30:])
     assert time.monotonic() - sent < 10.0
-    assert [ln for ln in rest if ln.startswith("neuralslicer:")] == [
+    assert [ln for ln in rest if not ln.startswith("optimise: ")] == [
         "neuralslicer: terminated (SIGTERM); run the same command again to resume"], "\n".join(rest[-30:])
-    assert not any("Traceback" in ln or "onnection refused" in ln for ln in rest), "\n".join(rest[-30:])
     psutil.wait_procs(server, timeout=10)
     assert not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in server)
     assert not (out / "metrics.json").exists()
