@@ -15,18 +15,19 @@ from flows.settings import cache_settings, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.device import limit_threads
-from neuralslicer.preflight import MAX_LAYERS, preflight
 
 
 def cmd_slice(args: argparse.Namespace) -> int:
     """Slice a model (mesh, .tet or spec YAML) into curved layers and write the output contract."""
-    from neuralslicer.model.solid import implicit_solid
-    from neuralslicer.model.spec import spec_for_file
-
     model = Path(args.model)
     if not model.exists():
         raise InputError(model, "no such file")
     api = start_local_api()  # boots in the background while the model is read and checked
+    _preload("torch")  # every run records its torch device: imported while the model is read and checked
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.preflight import preflight
+
     spec = spec_for_file(model, args.up or "z", args.units or "mm")
     update = {k: v for k, v in (("up", args.up), ("units", args.units)) if v is not None and getattr(spec, k) != v}
     if update:
@@ -59,6 +60,20 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
         summary = with_api_retry(job)
     print_summary(summary)
     return 0
+
+
+def _preload(module: str) -> None:
+    """Import a module in a background thread (the command is about to wait for the local server)."""
+    import importlib
+    import threading
+
+    def load() -> None:
+        try:
+            importlib.import_module(module)
+        except Exception:  # noqa: BLE001 - the run imports it again where it needs it, and says why it fails
+            pass
+
+    threading.Thread(target=load, name=f"preload-{module}", daemon=True).start()
 
 
 def print_summary(summary: dict[str, Any]) -> None:
@@ -132,7 +147,8 @@ def add_slice_parser(sub: Any) -> None:
     p.add_argument("--units", choices=("mm", "cm", "m", "in"), default=None,
                    help="unit of the model file's coordinates (default mm, or the spec's)")
     p.add_argument("--force", action="store_true",
-                   help=f"slice even when the layer count estimate exceeds {MAX_LAYERS:,} (a wrong unit, usually)")
+                   help="slice even when the layer count estimate exceeds the preflight's limit of 5,000 layers "
+                        "(a wrong unit, usually)")
     p.set_defaults(func=cmd_slice)
 
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import hashlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import trimesh
@@ -17,11 +17,13 @@ from neuralslicer.model.solid import Solid
 from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.neural.initial_guess import load_user_field
-from neuralslicer.outputs import Attempt, RunResults
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
 from storage import ArtifactRef, ArtifactStore, digest
+
+if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
+    from neuralslicer.outputs import RunResults
 
 
 def read(ref: ArtifactRef, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -173,6 +175,8 @@ def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage:
              layers: ArtifactRef, printing: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
              attempts: list[tuple[str, ArtifactRef, ArtifactRef]]) -> RunResults:
     """Every step's result of one slice, as the output contract needs them."""
+    from neuralslicer.outputs import Attempt, RunResults
+
     refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers,
             "toolpaths": printing, "stress_samples": stress, "verify": verify}
     c = read_cage(cage)

@@ -47,7 +47,8 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 def cli_env(tmp_path: Path, own_server: bool = False) -> dict[str, str]:
     """Environment of a CLI subprocess: the session's Prefect server (a running server is used when
-    PREFECT_API_URL names it), or with ``own_server`` an ephemeral one of its own in a fresh PREFECT_HOME."""
+    PREFECT_API_URL names it), or with ``own_server`` an ephemeral one of its own in a fresh PREFECT_HOME (which
+    stops with the command: conftest sets NEURALSLICER_API_IDLE_S=0)."""
     from prefect.settings import PREFECT_API_URL
 
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
@@ -166,7 +167,7 @@ def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_
         seen.append(line.rstrip())
         if line.startswith("optimise: ") and "/20 (" in line and int(line.split()[1].split("/")[0]) >= 6:
             break                                  # checkpoints (every 2 steps) are on disk
-    server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "uvicorn" in " ".join(c.cmdline())]
+    server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "flows.api_server" in c.cmdline()]
     assert server and all(os.getpgid(c.pid) != proc.pid for c in server), "the local server shares the group"
     sent = time.monotonic()
     os.killpg(proc.pid, signal.SIGTERM)

@@ -42,9 +42,18 @@ def available_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
 
 
 def limit_threads() -> int:
-    """Torch's intra-op threads set to the CPUs available (never more than torch chose); the count."""
-    import torch  # here, not at the top: the command line calls this before it needs torch
+    """Torch's intra-op threads set to the CPUs available (never more than torch chose); the count. Before torch is
+    imported (the command line calls this before it knows whether a field is optimised at all), a process allowed
+    fewer CPUs than the machine has gets ``OMP_NUM_THREADS`` (unless set), which torch reads on import."""
+    import sys
 
-    n = min(torch.get_num_threads(), available_cpus())
+    n = available_cpus()
+    if "torch" not in sys.modules:
+        if n < (os.cpu_count() or n):
+            os.environ.setdefault("OMP_NUM_THREADS", str(n))
+        return n
+    import torch
+
+    n = min(torch.get_num_threads(), n)
     torch.set_num_threads(n)
     return n
