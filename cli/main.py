@@ -23,7 +23,6 @@ def cmd_slice(args: argparse.Namespace) -> int:
     if not model.exists():
         raise InputError(model, "no such file")
     api = start_local_api()  # boots in the background while the model is read and checked
-    _preload("torch")  # every run records its torch device: imported while the model is read and checked
     from neuralslicer.model.solid import implicit_solid
     from neuralslicer.model.spec import spec_for_file
     from neuralslicer.preflight import preflight
@@ -60,20 +59,6 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
         summary = with_api_retry(job)
     print_summary(summary)
     return 0
-
-
-def _preload(module: str) -> None:
-    """Import a module in a background thread (the command is about to wait for the local server)."""
-    import importlib
-    import threading
-
-    def load() -> None:
-        try:
-            importlib.import_module(module)
-        except Exception:  # noqa: BLE001 - the run imports it again where it needs it, and says why it fails
-            pass
-
-    threading.Thread(target=load, name=f"preload-{module}", daemon=True).start()
 
 
 def print_summary(summary: dict[str, Any]) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import torch
@@ -57,3 +57,13 @@ def limit_threads() -> int:
     n = min(torch.get_num_threads(), n)
     torch.set_num_threads(n)
     return n
+
+
+def device_record(device: torch.device) -> dict[str, Any]:
+    """What an optimisation records of the device it ran on (the run's provenance reads it back)."""
+    import torch
+
+    out: dict[str, Any] = {"device": str(device), "torch_threads": torch.get_num_threads()}
+    if device.type == "cuda":
+        out.update(cuda_name=torch.cuda.get_device_name(device), cuda_version=torch.version.cuda)
+    return out
