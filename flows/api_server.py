@@ -38,6 +38,7 @@ def idle_watched(app: App, idle_s: float) -> App:
     state = {"active": 0, "last": time.monotonic()}
 
     async def started(message: Any, send: Callable[[Any], Awaitable[None]]) -> None:
+        """Pass a lifespan message on; the end of the start-up starts the idle clock."""
         if message.get("type") == "lifespan.startup.complete":
             state["last"] = time.monotonic()
             threading.Thread(target=watch, name="idle-watch", daemon=True).start()
@@ -45,6 +46,7 @@ def idle_watched(app: App, idle_s: float) -> App:
 
     async def watched(scope: dict, receive: Callable[[], Awaitable[Any]], send: Callable[[Any], Awaitable[None]]
                       ) -> None:
+        """The app, with every request and connection counted while it lasts."""
         if scope["type"] == "lifespan":
             return await app(scope, receive, lambda message: started(message, send))
         if scope["type"] not in ("http", "websocket"):
@@ -58,6 +60,7 @@ def idle_watched(app: App, idle_s: float) -> App:
             state["last"] = time.monotonic()
 
     def watch() -> None:
+        """SIGTERM to this process once nothing has been served for ``idle_s``."""
         while True:
             time.sleep(min(idle_s, 2.0))
             if state["active"] == 0 and time.monotonic() - state["last"] > idle_s:

@@ -99,6 +99,7 @@ def scan(material: PrintedMaterial, part: HeadPart, tips: FloatArray, axes: Floa
     chunks = [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
     def run(sl: slice) -> None:
+        """Scan one chunk into its rows of the results."""
         hit[sl], witness[sl], clear[sl] = _scan_chunk(material, part, tips[sl], axes[sl], visible[sl], margin)
 
     if len(chunks) == 1 or workers() == 1:
