@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -14,18 +15,18 @@ from flows.settings import cache_settings, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.device import limit_threads
-from neuralslicer.preflight import MAX_LAYERS, preflight
 
 
 def cmd_slice(args: argparse.Namespace) -> int:
     """Slice a model (mesh, .tet or spec YAML) into curved layers and write the output contract."""
-    from neuralslicer.model.solid import implicit_solid
-    from neuralslicer.model.spec import spec_for_file
-
     model = Path(args.model)
     if not model.exists():
         raise InputError(model, "no such file")
     api = start_local_api()  # boots in the background while the model is read and checked
+    from neuralslicer.model.solid import implicit_solid
+    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.preflight import preflight
+
     spec = spec_for_file(model, args.up or "z", args.units or "mm")
     update = {k: v for k, v in (("up", args.up), ("units", args.units)) if v is not None and getattr(spec, k) != v}
     if update:
@@ -131,7 +132,8 @@ def add_slice_parser(sub: Any) -> None:
     p.add_argument("--units", choices=("mm", "cm", "m", "in"), default=None,
                    help="unit of the model file's coordinates (default mm, or the spec's)")
     p.add_argument("--force", action="store_true",
-                   help=f"slice even when the layer count estimate exceeds {MAX_LAYERS:,} (a wrong unit, usually)")
+                   help="slice even when the layer count estimate exceeds the preflight's limit of 5,000 layers "
+                        "(a wrong unit, usually)")
     p.set_defaults(func=cmd_slice)
 
 
@@ -147,10 +149,41 @@ def make_parser() -> ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's time limit, an eviction, ``timeout``), handled as Ctrl-C is."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    """SIGTERM handler: stop the run the way Ctrl-C does (checkpoints stay, the rerun resumes)."""
+    raise Terminated()
+
+
+def _on_sigterm() -> None:
+    """Handle SIGTERM as Ctrl-C (in the main thread; Prefect's flow engine hands it back here when its run ends)."""
+    try:
+        signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # pragma: no cover - not the main thread (an embedding application)
+        pass
+
+
+def _leave(code: int) -> int:
+    """Leave a run stopped by Ctrl-C or SIGTERM now: the exit handlers run (the local server stops), the
+    interpreter's teardown does not (native extensions would report the objects the interrupted frames still hold)."""
+    import atexit
+    import os
+
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `neuralslicer` command."""
+    """Entry point of the `neuralslicer` command (``argv``: the arguments of an in-process call, which returns the
+    exit status also when interrupted)."""
     parser = make_parser()
     args = parser.parse_args(argv)
+    _on_sigterm()
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
@@ -163,9 +196,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"neuralslicer: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, Terminated) or isinstance(exc.__context__, Terminated):
+            print("neuralslicer: terminated (SIGTERM); run the same command again to resume", file=sys.stderr)
+            code = 128 + signal.SIGTERM
+        else:
+            print("neuralslicer: interrupted; run the same command again to resume", file=sys.stderr)
+            code = 130
+        return code if argv is not None else _leave(code)
 
 
 if __name__ == "__main__":

@@ -5,12 +5,14 @@ import argparse
 import shutil
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
-from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.config import NETWORK_PRESETS
+
+if TYPE_CHECKING:   # the configuration imports the whole pipeline's settings: only once a command runs
+    from neuralslicer.config import SliceConfig
 
 OBJECTIVES = ("sf", "sr", "po", "gc", "ca")
 
@@ -91,6 +93,8 @@ CONFIG_KEYS = {
 
 def build_config(options: argparse.Namespace) -> SliceConfig:
     """SliceConfig from --config, overridden by the explicit command-line options, validated."""
+    from neuralslicer.config import SliceConfig
+
     cfg = SliceConfig.from_yaml(options.config) if options.config else SliceConfig()
     data = cfg.model_dump()
     for name, keys in CONFIG_KEYS.items():

@@ -9,7 +9,6 @@ from cli.options import ArgumentParser, add_slicing_options, build_config, run_i
 from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
 from neuralslicer.neural.device import limit_threads
-from neuralslicer.preflight import preflight
 
 
 def parse_counts(text: str) -> list[int]:
@@ -27,6 +26,7 @@ def check_model(model: Path, args: argparse.Namespace, config: Any, out_dir: Pat
     """The slice command's checks before any work (outputs, store, scale, layer count, machine, FEA) for one model."""
     from neuralslicer.model.solid import implicit_solid
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.preflight import preflight
 
     spec = spec_for_file(model, args.up or "z", getattr(args, "units", None) or "mm")
     solid = implicit_solid(spec)

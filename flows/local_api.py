@@ -5,8 +5,15 @@ it first imports the whole server package into the calling process (about 2.5 s)
 server's own process to boot (about 3.3 s), while the command does nothing else. ``LocalApi`` launches the
 same server process (the same uvicorn app and settings as Prefect's ``SubprocessASGIServer``) as soon as the
 command starts, without that import, so that its boot overlaps reading the model, the checks and the
-imports; the flow then runs against it through ``PREFECT_API_URL``. A cached rerun of the ring takes about
-4 s less. With ``PREFECT_API_URL`` set (a Prefect server, the test harness) nothing is started.
+imports; the flow then runs against it through ``PREFECT_API_URL``. With ``PREFECT_API_URL`` set (a Prefect
+server, the test harness) nothing is started.
+
+The server's boot (3-7 s, the import of Prefect's server package most of it) is the longest part of a cached
+rerun, so a server stays up after the command for ``NEURALSLICER_API_IDLE_S`` seconds without a request (default
+300; 0: it stops with the command), recorded in ``PREFECT_HOME/neuralslicer-api.json``; the next command of the
+same interpreter and Prefect version uses it (a health check) instead of booting its own. The server runs in a
+session of its own, so that a SIGTERM or Ctrl-C to the command's process group reaches the flow, which reports
+its end to the server (``flows/api_server.py``).
 """
 from __future__ import annotations
 
@@ -34,16 +41,36 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-class LocalApi:
-    """A local Prefect API server process, booting in the background from construction on."""
+#: seconds a local server stays up after its last request, for the next command to use (0: it stops with the
+#: command that started it); ``NEURALSLICER_API_IDLE_S`` sets it
+IDLE_S = 300.0
+#: the record of a server left up for the next command, in PREFECT_HOME
+RECORD = "neuralslicer-api.json"
 
-    def __init__(self) -> None:
-        """Launch the server process (returns at once)."""
+
+def idle_seconds() -> float:
+    """How long a server this command starts stays up after its last request (``NEURALSLICER_API_IDLE_S``)."""
+    try:
+        return max(0.0, float(os.environ.get("NEURALSLICER_API_IDLE_S", IDLE_S)))
+    except ValueError:
+        return IDLE_S
+
+
+class LocalApi:
+    """A local Prefect API server: one another command left up (``RECORD``), or a process of its own booting in the
+    background from construction on."""
+
+    def __init__(self, idle_s: float | None = None) -> None:
+        """Use the server of the record when it answers, else launch one (returns at once)."""
         self.process: subprocess.Popen[bytes] | None = None
         self.port = 0
+        self.idle_s = idle_seconds() if idle_s is None else idle_s
+        self.reused = False
+        self._served = False
         self._log = tempfile.TemporaryFile()   # the server's stderr: a file, so that it can never block on a full pipe
-        self._launch()
-        atexit.register(self.stop)
+        if not (self.idle_s > 0 and self._reuse()):
+            self._launch()
+        atexit.register(self._at_exit)
 
     @property
     def url(self) -> str:
@@ -51,23 +78,73 @@ class LocalApi:
         return f"http://127.0.0.1:{self.port}/api"
 
     def _launch(self) -> None:
-        """Start the uvicorn process of Prefect's server app (the ephemeral server's command and settings)."""
-        import prefect
+        """Start the process of Prefect's server app (the ephemeral server's app and settings, ``flows/api_server``)."""
         from prefect.settings import get_current_settings
 
         self.port = free_port()
+        self.reused = False
         env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1",
                **get_current_settings().to_environment_variables(exclude_unset=True)}
+        # a session of its own: a SIGTERM or Ctrl-C sent to the command's process group stops the flow, which then
+        # reports its end to this server; the server stays for the next command or goes with this one
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--app-dir", str(Path(prefect.__module_path__).parent), "--factory",
-             "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(self.port),
-             "--log-level", "error", "--lifespan", "on"],
-            env=env, stdout=subprocess.DEVNULL, stderr=self._log)
+            [sys.executable, "-m", "flows.api_server", str(os.getpid()), str(self.idle_s), str(self.port)],
+            env=env, stdout=subprocess.DEVNULL, stderr=self._log, start_new_session=True)
+
+    def _record(self) -> Path:
+        """Where a server left up for the next command is recorded (in PREFECT_HOME)."""
+        from prefect.settings import get_current_settings
+
+        return Path(get_current_settings().home) / RECORD
+
+    def _identity(self) -> dict[str, str]:
+        """What a reused server must share with this command: the interpreter and Prefect's version."""
+        import prefect
+
+        return {"python": sys.executable, "prefect": prefect.__version__}
+
+    def _reuse(self) -> bool:
+        """Take the recorded server when it is of this interpreter and Prefect, alive and answering."""
+        import json
+
+        try:
+            record = json.loads(self._record().read_text())
+            if {k: record.get(k) for k in ("python", "prefect")} != self._identity():
+                return False
+            os.kill(int(record["pid"]), 0)
+            self.port = int(record["port"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
+        if not self._healthy(timeout_s=2.0):
+            return False
+        self.reused = self._served = True
+        return True
+
+    def _healthy(self, timeout_s: float) -> bool:
+        """True when the API answers its health check within ``timeout_s``."""
+        import httpx
+
+        try:
+            return httpx.get(f"{self.url}/health", timeout=timeout_s).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def _keep(self) -> None:
+        """Record this server for the next command (a server that stays up after this one)."""
+        from neuralslicer.fileio import write_json_atomic
+
+        assert self.process is not None
+        with contextlib.suppress(OSError):
+            write_json_atomic(self._record(), {"port": self.port, "pid": self.process.pid, **self._identity()})
 
     def wait(self, timeout_s: float) -> None:
         """Block until the API answers its health check; RuntimeError (Prefect's words) after ``timeout_s``."""
         import httpx
 
+        if self.reused:
+            if self._healthy(timeout_s=5.0):
+                return
+            self._launch()                # the recorded server went away: boot a fresh one
         if self.process is None:          # stopped after a failed start: boot a fresh one
             self._launch()
         deadline = time.monotonic() + timeout_s
@@ -86,6 +163,9 @@ class LocalApi:
                     raise RuntimeError(f"{API_START_FAILED}: the server process exited with code {status}: {err}")
                 try:
                     if client.get(f"{self.url}/health", timeout=5.0).status_code == 200:
+                        self._served = True
+                        if self.idle_s > 0:
+                            self._keep()
                         return
                 except httpx.HTTPError:
                     pass
@@ -102,8 +182,13 @@ class LocalApi:
         with temporary_settings(updates={PREFECT_API_URL: self.url}):
             yield
 
+    def _at_exit(self) -> None:
+        """At the command's exit: leave a server that served it up for the next command, else stop it."""
+        if not (self.idle_s > 0 and self._served):
+            self.stop()
+
     def stop(self) -> None:
-        """Terminate the server process (at exit, or after a failed start)."""
+        """Terminate the server process this command started (after a failed start, at exit, or when asked)."""
         process, self.process = self.process, None
         if process is None or process.poll() is not None:
             return

@@ -1,6 +1,7 @@
 """Prefect settings of a run: quiet local defaults and task results (cache records) beside the store."""
 from __future__ import annotations
 
+import logging
 import os
 import re
 from pathlib import Path
@@ -21,6 +22,27 @@ def prefect_environment() -> None:
     os.environ.setdefault("PREFECT_RESULTS_PERSIST_BY_DEFAULT", "true")
     # the local API server needs ~6 s on a quiet machine and far longer on a loaded one (20 s by default)
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(API_STARTUP_TIMEOUT_S))
+    quiet_interrupts()
+
+
+class _QuietInterrupts(logging.Filter):
+    """Drops Prefect's log records of a run stopped by Ctrl-C or SIGTERM: the command says so in one line, and the
+    run's state (Crashed, with the same words) still reaches the API."""
+
+    WORDS = ("aborted by an interrupt signal", "aborted by a termination signal")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """False for the records of an interrupted run."""
+        message = record.getMessage()
+        return not any(w in message for w in self.WORDS)
+
+
+def quiet_interrupts() -> None:
+    """Install ``_QuietInterrupts`` on Prefect's flow and task run loggers (once)."""
+    for name in ("prefect.flow_runs", "prefect.task_runs"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _QuietInterrupts) for f in logger.filters):
+            logger.addFilter(_QuietInterrupts())
 
 
 API_STARTUP_TIMEOUT_S = 180

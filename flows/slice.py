@@ -129,6 +129,16 @@ def strength_rounds(
     return (field_ref, layers, printing), rounds
 
 
+def optimised_on(store: str, fields: list[ArtifactRef]) -> dict[str, Any] | None:
+    """The device record of the first of these fields that an optimisation wrote (None if none did)."""
+    st = ArtifactStore(store, create=False)
+    for ref in fields:
+        attrs = st.attrs(ref.path)
+        if attrs.get("device"):
+            return attrs
+    return None
+
+
 @dataclass
 class SliceRun:
     """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest,
@@ -236,7 +246,8 @@ def slice_pipeline(
     )
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
                         extra={**(provenance_extra or {}), "store": store,
-                               "cage_sha256": ArtifactStore(store, create=False).attrs(cage.path).get("sha256")})
+                               "cage_sha256": ArtifactStore(store, create=False).attrs(cage.path).get("sha256")},
+                        device_used=optimised_on(store, [f for _, f, _ in attempts] + [field_ref]))
     provenance_digest = record_provenance(out_dir, store, name, record)
     add_to_metrics(out_dir, record)
     refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "fea": fea, "stress_samples": stress,

@@ -34,8 +34,10 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def device_info(device: str = "auto") -> dict[str, Any]:
-    """The machine and the torch device a run with this device setting uses."""
+def device_info(device: str = "auto", used: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The machine and the torch device a run with this device setting uses: ``used`` when the step that optimised
+    the field recorded it (``device``, ``torch_threads``, ``cuda_name``, ``cuda_version``; a cached rerun then
+    records the device of the run that did the work, without importing torch), else probed."""
     info: dict[str, Any] = {
         "hostname": socket.gethostname(),
         "platform": platform.platform(),
@@ -43,6 +45,11 @@ def device_info(device: str = "auto") -> dict[str, Any]:
         "cpu_count": os.cpu_count(),
         "requested": device,
     }
+    if used and used.get("device"):
+        info["torch_device"] = str(used["device"])
+        info["torch_threads"] = used.get("torch_threads")
+        info.update({k: used[k] for k in ("cuda_name", "cuda_version") if used.get(k)})
+        return info
     try:
         import torch
 
@@ -109,8 +116,9 @@ def canonical_digest(data: Any) -> str:
 
 
 def provenance(spec: BaseModel, config: BaseModel, extra_files: dict[str, str | Path] | None = None,
-               extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The full record of a run: inputs by hash, spec and config, seeds, package versions, device, code, command."""
+               extra: dict[str, Any] | None = None, device_used: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The full record of a run: inputs by hash, spec and config, seeds, package versions, device (``device_used``:
+    as the field's optimisation recorded it, see ``device_info``), code, command."""
     cfg = config.model_dump(mode="json")
     device = cfg.get("neural", {}).get("device", "auto") if isinstance(cfg.get("neural"), dict) else "auto"
     return {
@@ -120,7 +128,7 @@ def provenance(spec: BaseModel, config: BaseModel, extra_files: dict[str, str | 
         "config_sha256": canonical_digest(cfg),
         "seeds": seeds(config),
         "versions": package_versions(),
-        "device": device_info(device),
+        "device": device_info(device, device_used),
         "code": {"git_commit": git_commit()},
         "command": list(sys.argv),
         "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

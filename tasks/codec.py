@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import hashlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import trimesh
@@ -17,11 +17,13 @@ from neuralslicer.model.solid import Solid
 from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.neural.initial_guess import load_user_field
-from neuralslicer.outputs import TURN_ARRAYS, Attempt, RunResults, StrengthRound
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
 from storage import ArtifactRef, ArtifactStore, digest
+
+if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
+    from neuralslicer.outputs import RunResults, StrengthRound
 
 
 def read(ref: ArtifactRef, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -174,6 +176,8 @@ def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage:
              attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
              sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None) -> RunResults:
     """Every step's result of one slice, as the output contract needs them."""
+    from neuralslicer.outputs import Attempt, RunResults
+
     refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers,
             "toolpaths": printing, "stress_samples": stress, "verify": verify}
     c = read_cage(cage)
@@ -196,6 +200,7 @@ def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage:
 
 def read_strength_round(label: str, printing: ArtifactRef, printed: ArtifactRef) -> StrengthRound:
     """One strength round: its print's collisions, the FEA of that print (strain figures) and how tau_max turned."""
+    from neuralslicer.outputs import TURN_ARRAYS, StrengthRound
     arrays, attrs = read(printed, [f"turn/{k}" for k in TURN_ARRAYS])
     return StrengthRound(label, int(attrs_of(printing)["metrics"].get("n_collisions", 0)), attrs,
                          {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items()})

@@ -31,7 +31,7 @@ STEP_VERSIONS = {
     "field_s3": "1",
     "field_blend": "1",
     "layers": "5",
-    "toolpaths": "10",
+    "toolpaths": "11",
     "verify": "3",
     "fea_printed": "1",
     "export": "4",

@@ -5,7 +5,6 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.fileio import write_text_atomic
-from neuralslicer.outputs import write_outputs
 from storage import ArtifactRef
 from tasks.codec import read_run
 from tasks.common import pipeline_task
@@ -26,6 +25,8 @@ def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, 
                 alpha_deg: float, beta_deg: float, attempts: list[tuple[str, ArtifactRef, ArtifactRef]] | None = None,
                 sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None) -> tuple[dict, dict]:
     """Write model.ply, layers/, field.vtu, samples_B.ply, the print, metrics.json, report.md and figures to out_dir."""
+    from neuralslicer.outputs import write_outputs   # the report's plotting libraries: only when exporting
+
     run = read_run(model, solid, samples, cage, field, layers, printing, stress, verify, attempts or [], sr_rounds or [])
     metrics = write_outputs(out_dir, run, alpha_deg, beta_deg, robot)
     write_text_atomic(Path(out_dir) / STAMP, out.digest)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from prefect import get_run_logger
 
-from neuralslicer.baselines.s3 import S3Config, optimise_s3
+from neuralslicer.baselines.s3_config import S3Config
 from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
 from neuralslicer.fea.samples import stress_field
@@ -15,7 +15,6 @@ from neuralslicer.model.spec import ModelSpec
 from neuralslicer.motion.pipeline import plan_print
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
-from neuralslicer.neural.optimise import FieldResult, Refinement
 from neuralslicer.samples import surface_samples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
@@ -24,7 +23,6 @@ from storage.content_cache import ContentCache, cache_root
 from tasks.codec import (encode_print, read, read_cage, read_fea, read_fea_spec, read_field, read_field_history,
                          read_layers, read_part_collisions, read_samples, read_solid, read_stress, read_user_field)
 from tasks.common import pipeline_task
-from tasks.optimise import run_optimisation
 from tasks.progress import Progress, say
 
 
@@ -91,6 +89,9 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
     if not objectives:
         arrays, attrs = ScalarField.height(c.vertices, c.tets).to_arrays()
         return arrays, {**attrs, "objectives": [], "steps": 0}
+    from neuralslicer.neural.optimise import FieldResult, Refinement   # torch: only when a field is optimised
+    from tasks.optimise import run_optimisation
+
     weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
     refine = None
     if refine_prints:
@@ -105,6 +106,8 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
 def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
                   stress: ArtifactRef | None, objectives: list[str], config: S3Config) -> tuple[dict, dict]:
     """The S3-Slicer baseline's field G: per-element rotations optimised in the deformed space, realised by ARAP."""
+    from neuralslicer.baselines.s3 import optimise_s3   # torch: only when a field is optimised
+
     c = read_cage(cage)
     with Progress("s3", total=config.steps) as bar:
         result = optimise_s3(c.vertices, c.tets, read_samples(samples), read_stress(stress) if stress is not None else None,

@@ -1,11 +1,12 @@
-"""Nozzle collisions: a planted collision is found, convex parts are clean, the ball cover is sound."""
+"""Nozzle collisions: a planted collision is found, convex parts are clean, the scans' geometry is sound."""
 from __future__ import annotations
 
 import numpy as np
 import trimesh
 
 from neuralslicer.motion import check_collisions, load_profile, platform_clearance
-from neuralslicer.motion.collision import PART, PLATFORM, head_collisions, head_cores, head_parts
+from neuralslicer.motion.collision import PART, PLATFORM, head_collisions
+from neuralslicer.motion.head import cone_ball, holder_ball
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, planar_stack, square_layer
@@ -81,23 +82,48 @@ def test_head_check_is_exact_on_random_clouds():
     axes = rng.normal(size=(60, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     _assert_exact(tips, axes, pts)
-    # the enclosing balls cover the head and the core balls lie inside it (dense samples of both)
+    # the enclosing balls cover the head's parts (dense samples of both)
     h = rng.uniform(0.4, 38.0, 20000)
     radial = rng.uniform(0, 1, 20000) ** 0.5 * np.where(h <= 8.0, h * np.tan(np.radians(30.0)), 15.0)
     ang = rng.uniform(0, 2 * np.pi, 20000)
     head_pts = np.c_[radial * np.cos(ang), radial * np.sin(ang), h]
     assert _inside_head(head_pts, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
-    parts = head_parts(NOZZLE, 0.4)
-    covered = np.zeros(len(head_pts), bool)
-    for c, r in parts:
-        covered |= np.linalg.norm(head_pts - [0, 0, c], axis=1) <= r + 1e-9
-    assert covered.all()
-    for c, r in head_cores(NOZZLE, 0.4):
-        d = rng.normal(size=(5000, 3))
-        ball = d / np.linalg.norm(d, axis=1, keepdims=True) * r * rng.uniform(0, 1, (5000, 1)) ** (1 / 3) + [0, 0, c]
-        assert _inside_head(ball, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
-    # tighter than one ball per part: the holder balls are smaller than the holder's enclosing ball
-    assert max(r for _, r in parts) < np.hypot(15.0, 15.0)
+    for (c, r), part in ((cone_ball(NOZZLE, 0.4), h <= 8.0), (holder_ball(NOZZLE), h > 8.0)):
+        assert np.all(np.linalg.norm(head_pts[part] - [0, 0, c], axis=1) <= r + 1e-9)
+
+
+def _boundary_samples(nz: Nozzle, min_height: float, part: str, n: int = 400) -> np.ndarray:
+    """Dense samples (h, radial) of the boundary of the cone or the holder in the half-plane."""
+    t = np.linspace(0.0, 1.0, n)
+    ta, L = np.tan(np.radians(nz.cone_half_angle_deg)), nz.cone_length
+    if part == "cone":
+        m = min_height
+        edges = [(np.full(n, m), t * m * ta), (m + t * (L - m), (m + t * (L - m)) * ta), (np.full(n, L), t * L * ta)]
+    else:
+        top, R = L + nz.holder_length, nz.holder_radius
+        edges = [(np.full(n, L), t * R), (L + t * (top - L), np.full(n, R)), (np.full(n, top), t * R)]
+    return np.concatenate([np.c_[a, b] for a, b in edges])
+
+
+def test_the_scans_part_bounds_are_exact_inside_and_below_the_distance_outside():
+    """The half-plane bound a scan classifies cubes with: exactly minus the distance to the boundary inside the part,
+    never more than the distance to it outside (distances to densely sampled boundaries)."""
+    from neuralslicer.motion.material import PrintedMaterial
+    from neuralslicer.motion.scan import HeadPart
+
+    material = PrintedMaterial.of_points(np.zeros((1, 3)), np.zeros(1, np.int64))
+    rng = np.random.default_rng(2)
+    for name, part, (h_lo, h_hi, r_hi) in (("cone", HeadPart.cone(NOZZLE, 0.4, material), (-2.0, 11.0, 7.0)),
+                                           ("holder", HeadPart.holder(NOZZLE, material), (3.0, 43.0, 20.0))):
+        pts = np.c_[rng.uniform(h_lo, h_hi, 4000), rng.uniform(0, r_hi, 4000)]
+        edge = _boundary_samples(NOZZLE, 0.4, name)
+        dist = np.min(np.hypot(pts[:, None, 0] - edge[None, :, 0], pts[:, None, 1] - edge[None, :, 1]), axis=1)
+        bound = part.bound(pts[:, 0], pts[:, 1])
+        inside = part.inside(pts[:, 0], pts[:, 1])
+        assert 100 < inside.sum() < len(pts) - 100
+        assert np.all(bound[inside] <= 1e-9) and np.all(bound[~inside] >= -1e-9)
+        assert np.allclose(-bound[inside], dist[inside], atol=0.2)          # the sampling's resolution
+        assert np.all(bound[~inside] <= dist[~inside] + 1e-9)
 
 
 def _tower_and_two_pads():
@@ -177,11 +203,9 @@ def test_lifted_travels_shift_the_other_collisions_by_their_detours():
     assert np.array_equal(out.xyz[left.indices[0]], tp.xyz[last])
 
 
-def test_cell_classified_holder_test_is_exact_on_a_dense_cloud():
-    """Thousands of material points in few cells (whole cells inside the holder, outside, on its boundary): the
+def test_cube_classified_holder_test_is_exact_on_a_dense_cloud():
+    """Thousands of material points in few cubes (whole cubes inside the holder, outside, on its boundary): the
     hits and their witnesses agree with the brute-force membership test at every pose."""
-    from neuralslicer.motion.collision import _holder_distance
-
     rng = np.random.default_rng(11)
     pts = np.vstack([rng.uniform([-30, -30, 15], [30, 30, 25], size=(6000, 3)),   # a dense slab
                      np.stack(np.meshgrid(*[np.arange(-12.0, 12.1, 1.0)] * 2, [8.0, 20.0], indexing="ij"), -1).reshape(-1, 3)])
@@ -195,14 +219,6 @@ def test_cell_classified_holder_test_is_exact_on_a_dense_cloud():
     assert np.array_equal(hit, exact) and 20 < hit.sum() < len(hit) - 20
     for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
         assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
-    # the signed distance is the exact one of the capped cylinder (checked against its definition)
-    d = rng.uniform(-40, 40, size=(2000, 3))
-    sd = _holder_distance(d, np.tile([0.0, 0.0, 1.0], (2000, 1)), NOZZLE)
-    inside = (d[:, 2] > 8) & (d[:, 2] < 38) & (np.hypot(d[:, 0], d[:, 1]) < 15)
-    assert np.array_equal(sd < 0, inside)
-    r, z = np.hypot(d[:, 0], d[:, 1]), d[:, 2]
-    outside_side = (~inside) & (z > 8) & (z < 38)
-    assert np.allclose(sd[outside_side], r[outside_side] - 15.0)
 
 
 def test_head_lowest_z_is_the_lowest_point_of_the_head():
@@ -234,9 +250,11 @@ def test_poses_above_the_material_are_skipped_exactly():
 
 
 def test_holder_anchors_clear_nearby_poses_soundly(monkeypatch):
-    """Along a dense sweep the anchors' clearance bounds clear most poses without a test of their own, the bound
+    """Along a dense sweep the anchors' clearance bounds clear most poses without a scan of their own, the bound
     never exceeds the holder's true distance to the material, and the hits are those of the brute-force test."""
     from neuralslicer.motion import collision as coll
+    from neuralslicer.motion import scan as sc
+    from neuralslicer.motion.material import PrintedMaterial
 
     rng = np.random.default_rng(5)
     pts = rng.uniform([-40, -40, 20], [40, 40, 28], size=(8000, 3))
@@ -244,28 +262,33 @@ def test_holder_anchors_clear_nearby_poses_soundly(monkeypatch):
     tips = np.c_[-30 + 60 * s, 10 * np.sin(6 * s), -24.0 + 7.0 * np.sin(9 * s)]        # 0.15 mm apart
     tilt = np.radians(35.0) * np.sin(2 * s)
     axes = np.c_[np.sin(tilt), np.zeros_like(s), np.cos(tilt)]
-    tested: list[int] = []
-    scan = coll._holder_scan
+    scanned: list[tuple[int, float]] = []
+    scan = sc.scan
 
-    def counting_scan(material, xyz, axis, nozzle, poses, *args):
-        tested.append(len(poses))
-        return scan(material, xyz, axis, nozzle, poses, *args)
+    def counting_scan(material, part, tips_, axes_, visible, margin=0.0):
+        scanned.append((len(tips_), margin))
+        return scan(material, part, tips_, axes_, visible, margin)
 
-    monkeypatch.setattr(coll, "_holder_scan", counting_scan)
+    monkeypatch.setattr(coll, "scan", counting_scan)
     hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
     exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
     assert np.array_equal(hit, exact) and 30 < hit.sum() < len(hit) - 100
     for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
         assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
-    # beside the hits (which no bound clears), most poses were cleared by an anchor
-    assert len(tested) == 2 and tested[1] <= hit.sum() + 0.25 * (len(tips) - hit.sum())
+    # cone, holder anchors (with a margin), holder one by one: beside the hits, most poses were cleared by an anchor
+    holder = [n for n, m in scanned[1:] if m == 0.0]
+    assert len(scanned) == 3 and scanned[1][1] == coll.HOLDER_MARGIN
+    assert holder[0] <= hit.sum() + 0.25 * (len(tips) - hit.sum())
     # the anchors' bound is a lower bound on the distance from the holder to the material, capped at the margin
-    material = coll._TreeSet()
-    material.add(pts)
-    h, l = np.zeros(len(tips), bool), np.full((len(tips), 3), np.nan)
-    bound = scan(material, tips, axes, NOZZLE, np.arange(len(tips)), h, l, 10**6, 5.0)
-    true = np.array([coll._holder_distance(pts - t, np.tile(a, (len(pts), 1)), NOZZLE).min() for t, a in zip(tips, axes)])
-    free = ~h
+    material = PrintedMaterial.of_points(pts, np.zeros(len(pts), np.int64))
+    _, _, bound = scan(material, sc.HeadPart.holder(NOZZLE, material), tips, axes, np.ones(len(tips), np.int64), 5.0)
+    d = pts[None, :, :] - tips[:, None, :]
+    h = np.einsum("pkj,pj->pk", d, axes)
+    radial = np.sqrt(np.maximum(np.einsum("pkj,pkj->pk", d, d) - h * h, 0.0))
+    dh, dr = np.abs(h - 23.0) - 15.0, radial - 15.0            # capped cylinder: exact signed distance
+    true = (np.minimum(np.maximum(dr, dh), 0.0) + np.hypot(np.maximum(dr, 0.0), np.maximum(dh, 0.0))).min(axis=1)
+    inside = true < 0
+    free = ~inside
     assert free.sum() > 100 and np.all(bound[free] <= true[free] + 1e-9) and np.all(bound[free] <= 5.0)
-    assert np.all(np.isneginf(bound[h])) and np.array_equal(h, true < 0)
+    assert np.all(np.isneginf(bound[inside]))
     assert np.mean(bound[free] > 0.5 * np.minimum(true[free], 5.0)) > 0.5   # and a useful one

@@ -14,8 +14,9 @@ NOZZLE = Nozzle(cone_half_angle_deg=30.0, cone_length=8.0, holder_radius=15.0, h
 
 
 def _bump_and_path(bump_top: float) -> Toolpaths:
-    """Layer 0: material at x = 2, |y| <= 0.5, z from 3.5 to ``bump_top``; layer 1: a path along y at x = z = 0."""
-    gy, gz = np.meshgrid(np.arange(-0.5, 0.51, 0.25), np.arange(3.5, bump_top + 1e-9, 0.25), indexing="ij")
+    """Layer 0: material at x = 2, |y| <= 0.5, z from 3.5 to ``bump_top`` (laid bottom-up); layer 1: a path along y
+    at x = z = 0."""
+    gz, gy = np.meshgrid(np.arange(3.5, bump_top + 1e-9, 0.25), np.arange(-0.5, 0.51, 0.25), indexing="ij")
     bump = np.column_stack([np.full(gy.size, 2.0), gy.ravel(), gz.ravel()])
     y = np.arange(-10.0, 10.01, 0.5)
     path = np.column_stack([np.zeros_like(y), y, np.zeros_like(y)])

@@ -144,11 +144,13 @@ def torus_samples(n_u: int = 120, n_v: int = 24, k: int = 10) -> dict[str, np.nd
 
 
 def printed_collisions(field: ScalarField, points: np.ndarray, layer: float = 0.5) -> int:
-    """Exact head collisions (the motion planner's check) of the points printed in slabs of G,
-    each along its LPD, against the earlier slabs and the platform."""
+    """Exact head collisions (the motion planner's check) of the points printed in slabs of G in the order of G
+    (L_GC's model of the print order), each along its LPD, against the points printed before and the platform."""
     g, d, _ = field.sample(points)
     ok = np.isfinite(g)
     g, d, points = g[ok], d[ok], points[ok]
+    order = np.argsort(g, kind="stable")
+    g, d, points = g[order], d[order], points[order]
     n = len(points)
     tp = Toolpaths(layer=np.floor((g - g.min()) / layer).astype(np.int64), path=np.zeros(n, np.int64), xyz=points,
                    axis=d, thickness=np.full(n, layer), width=np.full(n, 0.3), extrude=np.ones(n, bool))

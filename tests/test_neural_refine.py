@@ -8,7 +8,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from neuralslicer.errors import InputError
-from neuralslicer.motion.collision import check_collisions
+from neuralslicer.motion.collision import CollisionReport, check_collisions
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.neural.field import CageGeometry, field_gradient
 from neuralslicer.neural.head_collision import (
@@ -192,13 +192,19 @@ def loop():
 
 
 def exact_collisions(V, T, G, probe, only=None):
-    """The motion planner's check of the probe points printed in 0.5 mm slabs of G along their LPDs: (colliding
-    points (k,3), the material each hit (k,3), report) -- an independent judge of the field's head."""
+    """The motion planner's check of the probe points printed in 0.5 mm slabs of G along their LPDs, in the order of
+    G (L_GC's model of the print order): (colliding points (k,3), the material each hit (k,3), report with indices
+    into ``probe``) -- an independent judge of the field's head."""
     g, d, _ = ScalarField(V, T, G).sample(probe)
     n = len(probe)
-    tp = Toolpaths(layer=np.floor((g - g.min()) / 0.5).astype(np.int64), path=np.zeros(n, np.int64), xyz=probe,
-                   axis=d, thickness=np.full(n, 0.5), width=np.full(n, 0.3), extrude=np.ones(n, bool))
-    report = check_collisions(tp, NOZZLE, 0.0, min_height=0.3, only=only)
+    order = np.argsort(g, kind="stable")
+    tp = Toolpaths(layer=np.floor((g[order] - g.min()) / 0.5).astype(np.int64), path=np.zeros(n, np.int64),
+                   xyz=probe[order], axis=d[order], thickness=np.full(n, 0.5), width=np.full(n, 0.3),
+                   extrude=np.ones(n, bool))
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    found = check_collisions(tp, NOZZLE, 0.0, min_height=0.3, only=None if only is None else rank[only])
+    report = CollisionReport(order[found.indices], found.locations, found.kind)
     return probe[report.indices], report.locations, report
 
 

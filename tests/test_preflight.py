@@ -209,3 +209,13 @@ def test_a_file_named_by_mistake_is_never_echoed(tmp_path, capsys, name, expecte
     err = refuse(capsys, ["slice", str(spec), "--out", str(tmp_path / "out")], *expected)
     assert "hunter2" not in err and "HOME" not in err and "TOKEN" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_slice_help_names_the_preflights_layer_limit():
+    """The --force help states the preflight's layer limit (written out: the command line does not import the
+    preflight before it runs a slice)."""
+    from cli.main import make_parser
+    from neuralslicer.preflight import MAX_LAYERS
+
+    slice_parser = next(a for a in make_parser()._subparsers._group_actions).choices["slice"]
+    assert f"{MAX_LAYERS:,}" in slice_parser.format_help().replace("\n", " ")

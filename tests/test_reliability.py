@@ -47,7 +47,8 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 def cli_env(tmp_path: Path, own_server: bool = False) -> dict[str, str]:
     """Environment of a CLI subprocess: the session's Prefect server (a running server is used when
-    PREFECT_API_URL names it), or with ``own_server`` an ephemeral one of its own in a fresh PREFECT_HOME."""
+    PREFECT_API_URL names it), or with ``own_server`` an ephemeral one of its own in a fresh PREFECT_HOME (which
+    stops with the command: conftest sets NEURALSLICER_API_IDLE_S=0)."""
     from prefect.settings import PREFECT_API_URL
 
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
@@ -137,6 +138,51 @@ def test_ctrl_c_says_one_line_exits_130_and_the_rerun_resumes(case, tmp_path):
     rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
                            timeout=600)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert comparable(out) == case["reference"]
+
+
+def _resumed_from(out: Path) -> list[int | None]:
+    """The step each optimisation of the run's store resumed from (None: started afresh)."""
+    from storage import ArtifactStore
+
+    root = out / "store.zarr"
+    model = next(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("_"))
+    store = ArtifactStore(root)
+    return [store.attrs(f"{model}/field/{d}").get("resumed_from_step") for d in store.children(f"{model}/field")]
+
+
+def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_resumes(case, tmp_path):
+    """What a scheduler does at its time limit: SIGTERM to the whole process group of a run with its own local
+    Prefect server, inside the optimisation. One line, exit 143 within 10 s, no traceback; the server was not in
+    the group (the flow reported its end to it) and is gone with the command; the rerun resumes from a checkpoint
+    and gives the uninterrupted result."""
+    import psutil
+
+    out = tmp_path / "run"
+    args = [*case["args"], "--out", str(out)]
+    env = cli_env(tmp_path, own_server=True)
+    proc = cli(args, env)
+    seen: list[str] = []
+    for line in proc.stderr:
+        seen.append(line.rstrip())
+        if line.startswith("optimise: ") and "/20 (" in line and int(line.split()[1].split("/")[0]) >= 6:
+            break                                  # checkpoints (every 2 steps) are on disk
+    server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "flows.api_server" in c.cmdline()]
+    assert server and all(os.getpgid(c.pid) != proc.pid for c in server), "the local server shares the group"
+    sent = time.monotonic()
+    os.killpg(proc.pid, signal.SIGTERM)
+    rest = proc.stderr.read().splitlines()
+    assert proc.wait(timeout=60) == 143, "\n".join((seen + rest)[-30:])
+    assert time.monotonic() - sent < 10.0
+    assert [ln for ln in rest if not ln.startswith("optimise: ")] == [
+        "neuralslicer: terminated (SIGTERM); run the same command again to resume"], "\n".join(rest[-30:])
+    psutil.wait_procs(server, timeout=10)
+    assert not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in server)
+    assert not (out / "metrics.json").exists()
+    rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+                           timeout=600)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert any(step for step in _resumed_from(out))
     assert comparable(out) == case["reference"]
 
 

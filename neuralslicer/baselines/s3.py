@@ -32,6 +32,7 @@ import torch
 
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.neural import losses as L
+from neuralslicer.neural.device import device_record
 from neuralslicer.baselines.s3_config import S3Config
 from neuralslicer.neural.networks import quaternion_to_matrix
 from neuralslicer.neural.problem import FieldProblem
@@ -226,5 +227,5 @@ def _result(problem: FieldProblem, objective: S3Objective, raw: torch.Tensor, hi
         final=final, steps=steps, converged=converged, wall_time_s=time.perf_counter() - t0, satisfaction=sat,
         attrs={"config": config.model_dump(mode="json"), "objectives": objectives,
                "ignored_objectives": [o for o in objectives if o not in S3_OBJECTIVES],
-               "solver_backend": problem.arap.backend, "device": str(problem.device)},
+               "solver_backend": problem.arap.backend, **device_record(problem.device)},
     )

@@ -11,6 +11,7 @@ import trimesh
 from neuralslicer.errors import InputError, PlanError
 from neuralslicer.layers import LayerConfig
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
+from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.planning import MachineProgram, merge_short_moves, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.motion.reorient import clamp_to_platform, clamp_to_reach, tilt_away
@@ -53,13 +54,16 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     # near the platform a tilted head dips below it: turn those axes up first (exact, local), the check judges after
     tp, platform = clamp_to_platform(tp, profile.nozzle, platform_z, cfg.collision_tilt_deg)
     t1 = time.perf_counter()
-    report = check_collisions(tp, profile.nozzle, platform_z)
+    # the beads as planned: one structure for the check, the lifts and the tilts (they move the nozzle, not the beads)
+    material = PrintedMaterial.of_toolpaths(tp)
+    report = check_collisions(tp, profile.nozzle, platform_z, material=material)
     t2 = time.perf_counter()
-    tp, report, lifted = raise_travels(tp, report, profile.nozzle, platform_z, default_min_height(tp))
-    tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg)
-    tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg)
+    min_height = default_min_height(tp)
+    tp, report, lifted = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material)
+    tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg, material)
+    tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg, material)
     # a travel into a waypoint that collided itself shows only once the tilt has cleared that waypoint: lift it now
-    tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, default_min_height(tp))
+    tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material)
     lifted = _merged_lifts(lifted, again)
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
@@ -99,7 +103,8 @@ def _merged_lifts(first: dict, second: dict) -> dict:
 
 
 def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,
-                cfg: ToolpathConfig, passes: int = 3) -> tuple[Toolpaths, CollisionReport, dict]:
+                cfg: ToolpathConfig, material: PrintedMaterial | None = None, passes: int = 3
+                ) -> tuple[Toolpaths, CollisionReport, dict]:
     """Tilt the tool axis clear at stray colliding waypoints (``cfg.collision_tilt_deg``); every tilted
     waypoint is checked again exactly (the material, earlier waypoints' positions, does not move), and a
     pass that does not lower the count is dropped. Later passes try the collisions the ramps caused."""
@@ -108,6 +113,7 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
     if not report.count or cfg.collision_tilt_deg <= 0 or report.count > cfg.collision_tilt_max_waypoints:
         return tp, report, summary
     min_height = default_min_height(tp)
+    material = PrintedMaterial.of_toolpaths(tp) if material is None else material
     untiltable = np.zeros(0, np.int64)
     changed: list[np.ndarray] = []
     max_tilt = 0.0
@@ -115,13 +121,13 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
         todo = report.subset(~np.isin(report.indices, untiltable))
         if not todo.count:
             break
-        tilted, how = tilt_away(tp, todo, profile.nozzle, platform_z, min_height,
-                                max_tilt_deg=cfg.collision_tilt_deg, ramp_mm=cfg.collision_tilt_ramp)
+        tilted, how = tilt_away(tp, todo, profile.nozzle, platform_z, min_height, max_tilt_deg=cfg.collision_tilt_deg,
+                                ramp_mm=cfg.collision_tilt_ramp, material=material)
         untiltable = np.union1d(untiltable, how.unfixed)
         if len(how.fixed) == 0:
             break
         after = report.replaced(how.changed, check_collisions(tilted, profile.nozzle, platform_z, min_height,
-                                                              only=how.changed))
+                                                              only=how.changed, material=material))
         if after.count >= report.count:
             break
         tp, report = tilted, after
@@ -137,7 +143,8 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
 
 
 def _clamp_reach(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,
-                 cfg: ToolpathConfig) -> tuple[Toolpaths, CollisionReport, dict]:
+                 cfg: ToolpathConfig, material: PrintedMaterial | None = None
+                 ) -> tuple[Toolpaths, CollisionReport, dict]:
     """Tool axes beyond the machine's B range turned back to it: up to ``cfg.collision_tilt_deg`` always, any
     angle with ``kinematics.beyond_reach = "turn"`` (else a PlanError naming the layers); the turned
     waypoints checked for collisions again."""
@@ -156,5 +163,6 @@ def _clamp_reach(tp: Toolpaths, report: CollisionReport, profile: MachineProfile
     if clamped is tp:
         return tp, report, summary
     changed = np.flatnonzero(np.any(clamped.axis != tp.axis, axis=1))
-    report = report.replaced(changed, check_collisions(clamped, profile.nozzle, platform_z, only=changed))
+    report = report.replaced(changed, check_collisions(clamped, profile.nozzle, platform_z, only=changed,
+                                                       material=material))
     return clamped, report, summary

@@ -16,7 +16,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from neuralslicer.motion.collision import CollisionReport, _head_hits, _TreeSet, earlier_material, platform_clearance
+from neuralslicer.motion.collision import CollisionReport, head_hits
+from neuralslicer.motion.head import platform_clearance
+from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
@@ -73,26 +75,34 @@ def _trial_rotations(axis: FloatArray, away: FloatArray, tilts_deg: FloatArray, 
     return np.tile(turn, (len(tilts_deg), 1)) * th[:, None], np.degrees(th)
 
 
-def _run_rotation(tp: Toolpaths, run: IndexArray, hit_at: FloatArray, material: _TreeSet, nozzle: Nozzle,
-                  platform_z: float, min_height: float, tilts_deg: FloatArray, n_azimuth: int
-                  ) -> tuple[FloatArray | None, float]:
-    """The first trial rotation clearing the head at every waypoint of the run, and its tilt (None, nan if none)."""
-    xyz, axis = tp.xyz[run], tp.axis[run]
-    mean_axis = axis.sum(axis=0)
-    mean_axis /= np.linalg.norm(mean_axis)
-    away = (xyz - hit_at).sum(axis=0)
-    away -= (away @ mean_axis) * mean_axis
-    rot, tilt = _trial_rotations(mean_axis, away, tilts_deg, n_azimuth)
-    k = len(rot)
-    poses_xyz = np.tile(xyz, (k, 1))
-    poses_axis = _rotate(np.tile(axis, (k, 1)), np.repeat(rot, len(run), axis=0))
-    hit, _ = _head_hits(material, poses_xyz, poses_axis, nozzle, min_height)
-    ok = ~hit & (platform_clearance(poses_xyz, poses_axis, nozzle, platform_z) >= 0)
-    clears = ok.reshape(k, len(run)).all(axis=1)
-    if not clears.any():
-        return None, float("nan")
-    best = int(np.argmax(clears))
-    return rot[best], float(tilt[best])
+def _run_rotations(tp: Toolpaths, runs: list[IndexArray], where_hit: dict, material: PrintedMaterial,
+                   visible: IndexArray, nozzle: Nozzle, platform_z: float, min_height: float, tilts_deg: FloatArray,
+                   n_azimuth: int) -> list[tuple[FloatArray | None, float]]:
+    """Per run, the first trial rotation clearing the head at every waypoint of the run and its tilt (None, nan if
+    none); the trials of all runs are judged in one exact query."""
+    trials, xyz, axis, vis = [], [], [], []
+    for run in runs:
+        mean_axis = tp.axis[run].sum(axis=0)
+        mean_axis /= np.linalg.norm(mean_axis)
+        away = (tp.xyz[run] - np.array([where_hit[int(i)] for i in run])).sum(axis=0)
+        away -= (away @ mean_axis) * mean_axis
+        rot, tilt = _trial_rotations(mean_axis, away, tilts_deg, n_azimuth)
+        trials.append((rot, tilt))
+        xyz.append(np.tile(tp.xyz[run], (len(rot), 1)))
+        axis.append(_rotate(np.tile(tp.axis[run], (len(rot), 1)), np.repeat(rot, len(run), axis=0)))
+        vis.append(np.tile(visible[run], len(rot)))
+    if not runs:
+        return []
+    xyz_all, axis_all = np.concatenate(xyz), np.concatenate(axis)
+    hit, _ = head_hits(material, xyz_all, axis_all, np.concatenate(vis), nozzle, min_height)
+    ok = ~hit & (platform_clearance(xyz_all, axis_all, nozzle, platform_z) >= 0)
+    out, at = [], 0
+    for run, (rot, tilt) in zip(runs, trials):
+        clears = ok[at:at + len(rot) * len(run)].reshape(len(rot), len(run)).all(axis=1)
+        at += len(rot) * len(run)
+        best = int(np.argmax(clears))
+        out.append((rot[best], float(tilt[best])) if clears.any() else (None, float("nan")))
+    return out
 
 
 def _arc_length(tp: Toolpaths) -> FloatArray:
@@ -103,44 +113,52 @@ def _arc_length(tp: Toolpaths) -> FloatArray:
 
 
 def tilt_away(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z: float, min_height: float,
-              max_tilt_deg: float = 15.0, ramp_mm: float = 5.0, n_azimuth: int = 12
-              ) -> tuple[Toolpaths, Reorientation]:
+              max_tilt_deg: float = 15.0, ramp_mm: float = 5.0, n_azimuth: int = 12,
+              material: PrintedMaterial | None = None) -> tuple[Toolpaths, Reorientation]:
     """A copy of ``tp`` with the tool axis tilted clear at colliding waypoints where a tilt up to
-    ``max_tilt_deg`` does it (see module doc), and what was changed."""
+    ``max_tilt_deg`` does it (see module doc), and what was changed. ``material``: the print's
+    (``PrintedMaterial.of_toolpaths``), when the caller has it; a tilt moves the nozzle, not the beads."""
+    material = PrintedMaterial.of_toolpaths(tp) if material is None else material
     idx = np.asarray(report.indices, np.int64)
-    where_hit = dict(zip(idx.tolist(), report.locations))
     tilts = np.linspace(0.0, max_tilt_deg, int(np.ceil(max_tilt_deg / 2.5)) + 1)[1:]
     arc = _arc_length(tp)
+    runs = _runs(tp, idx, arc, 2.0 * ramp_mm)
+    found = _run_rotations(tp, runs, dict(zip(idx.tolist(), report.locations)), material, material.visible_at(tp),
+                           nozzle, platform_z, min_height, tilts, n_azimuth)
     rotvec = np.zeros((len(tp), 3))
     weight = np.zeros(len(tp))
+    on_path = np.flatnonzero(tp.path >= 0)
     fixed, unfixed, tilt_deg = [], [], []
-    for layer in np.unique(tp.layer[idx]):
-        material = earlier_material(tp, int(layer))
-        for run in _runs(tp, idx[tp.layer[idx] == layer], arc, 2.0 * ramp_mm):
-            hit_at = np.array([where_hit[int(i)] for i in run])
-            rot, tilt = _run_rotation(tp, run, hit_at, material, nozzle, platform_z, min_height, tilts, n_azimuth)
-            if rot is None:
-                unfixed += run.tolist()
-                continue
-            fixed += run.tolist()
-            tilt_deg += [tilt] * len(run)
-            if tp.path[run[0]] < 0 or ramp_mm <= 0:
-                ids, frac = run, np.ones(len(run))
-            else:
-                same = np.flatnonzero(tp.path == tp.path[run[0]])
-                s = arc[same]
-                dist = np.maximum(np.maximum(arc[run[0]] - s, s - arc[run[-1]]), 0.0)
-                near = dist < ramp_mm
-                ids, frac = same[near], 1.0 - dist[near] / ramp_mm
-            stronger = frac > weight[ids]
-            rotvec[ids[stronger]] = rot * frac[stronger, None]
-            weight[ids[stronger]] = frac[stronger]
+    for run, (rot, tilt) in zip(runs, found):
+        if rot is None:
+            unfixed += run.tolist()
+            continue
+        fixed += run.tolist()
+        tilt_deg += [tilt] * len(run)
+        ids, frac = _ramp(tp, on_path, run, arc, ramp_mm)
+        stronger = frac > weight[ids]
+        rotvec[ids[stronger]] = rot * frac[stronger, None]
+        weight[ids[stronger]] = frac[stronger]
     changed = np.flatnonzero(weight > 0)
     axis = tp.axis.copy()
     axis[changed] = _rotate(tp.axis[changed], rotvec[changed])
     out = replace(tp, axis=axis, attrs=dict(tp.attrs))
     return out, Reorientation(np.asarray(fixed, np.int64), np.asarray(unfixed, np.int64), changed,
                               np.asarray(tilt_deg, np.float64))
+
+
+def _ramp(tp: Toolpaths, on_path: IndexArray, run: IndexArray, arc: FloatArray, ramp_mm: float
+          ) -> tuple[IndexArray, FloatArray]:
+    """The waypoints a run's rotation reaches and its weight there: 1 on the run, fading to 0 over ``ramp_mm``
+    (``on_path``: the waypoints on a path, whose path ids never decrease)."""
+    if tp.path[run[0]] < 0 or ramp_mm <= 0:
+        return run, np.ones(len(run))
+    ids = tp.path[on_path]
+    same = on_path[np.searchsorted(ids, tp.path[run[0]]):np.searchsorted(ids, tp.path[run[0]], side="right")]
+    s = arc[same]
+    dist = np.maximum(np.maximum(arc[run[0]] - s, s - arc[run[-1]]), 0.0)
+    near = dist < ramp_mm
+    return same[near], 1.0 - dist[near] / ramp_mm
 
 
 def _clamp_polar(tp: Toolpaths, limit_deg: FloatArray | float, max_tilt_deg: float) -> tuple[Toolpaths, dict]:

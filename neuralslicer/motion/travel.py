@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from neuralslicer.motion.collision import (TRAVEL_PATH, CollisionReport, _head_hits, _TreeSet, earlier_material,
-                                           platform_clearance)
+from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport, head_hits
+from neuralslicer.motion.head import platform_clearance
+from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray
@@ -50,47 +51,61 @@ def _plane_route(p: FloatArray, q: FloatArray, a: FloatArray, b: FloatArray, h: 
     return [p, p1, p2, q2, q1, q], [a, a, up, up, b, b]
 
 
-def _clear_route(material: _TreeSet, p: FloatArray, q: FloatArray, a: FloatArray, b: FloatArray, nozzle: Nozzle,
-                 platform_z: float, min_height: float, lifts: FloatArray, spacing: float
-                 ) -> tuple[FloatArray, FloatArray, float] | None:
-    """The first clear detour from p to q: lifts along the axes (smallest first), then routes by the clearance
-    plane (``min_height`` above the highest earlier material, where the tip of a vertical head is clear of it);
-    its inner points and axes and its largest lift (mm above the higher end), or None."""
-    z_plane = material.top + 2.0 * min_height + 1.0
-    routes = [_lift_route(p, q, a, b, h) for h in lifts]
-    routes += [_plane_route(p, q, a, b, h, z_plane) for h in lifts[:3]]
-    for points, axes in routes:
-        xyz, ax = _poses(points, axes, spacing)
-        hit, _ = _head_hits(material, xyz, ax, nozzle, min_height)
-        if not hit.any() and (platform_clearance(xyz, ax, nozzle, platform_z) >= 0).all():
+def _routes(p: FloatArray, q: FloatArray, a: FloatArray, b: FloatArray, lifts: FloatArray, z_plane: float
+            ) -> list[tuple[list[FloatArray], list[FloatArray]]]:
+    """The detours from p to q in the order they are tried: lifts along the axes (smallest first), then routes by
+    the clearance plane with the three smallest lifts."""
+    return [_lift_route(p, q, a, b, h) for h in lifts] + [_plane_route(p, q, a, b, h, z_plane) for h in lifts[:3]]
+
+
+def _clear_routes(material: PrintedMaterial, tp: Toolpaths, ends: IndexArray, visible: IndexArray, nozzle: Nozzle,
+                  platform_z: float, min_height: float, lifts: FloatArray, spacing: float
+                  ) -> dict[int, tuple[FloatArray, FloatArray, float]]:
+    """Per travel arriving at a waypoint of ``ends``, the first clear detour (its inner points and axes and its
+    largest lift above the higher end), if any. The clearance plane lies ``2 min_height + 1`` mm above the highest
+    material laid before the travel (where the tip of a vertical head is clear of it). Every travel's candidate of
+    one kind is judged in one exact query, the next kind only for the travels left."""
+    found: dict[int, tuple[FloatArray, FloatArray, float]] = {}
+    candidates = {int(j): _routes(tp.xyz[j - 1], tp.xyz[j], tp.axis[j - 1], tp.axis[j], lifts,
+                                  float(material.top_before(visible[j:j + 1])[0]) + 2.0 * min_height + 1.0)
+                  for j in ends}
+    for kind in range(len(lifts) + min(3, len(lifts))):
+        left = [j for j in candidates if j not in found]
+        if not left:
+            break
+        poses = [_poses(*candidates[j][kind], spacing) for j in left]
+        xyz, ax = np.concatenate([x for x, _ in poses]), np.concatenate([a for _, a in poses])
+        owner = np.repeat(np.arange(len(left)), [len(x) for x, _ in poses])
+        hit, _ = head_hits(material, xyz, ax, visible[np.asarray(left)][owner], nozzle, min_height)
+        bad = hit | (platform_clearance(xyz, ax, nozzle, platform_z) < 0)
+        blocked = np.bincount(owner[bad], minlength=len(left)) > 0
+        for j in np.asarray(left)[~blocked]:
+            points, axes = candidates[int(j)][kind]
             inner = np.stack(points[1:-1])
-            return inner, np.stack(axes[1:-1]), float(inner[:, 2].max() - max(p[2], q[2]))
-    return None
+            found[int(j)] = (inner, np.stack(axes[1:-1]), float(inner[:, 2].max() - max(points[0][2], points[-1][2])))
+    return found
 
 
 def raise_travels(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z: float, min_height: float,
-                  spacing: float = 2.0, lifts: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
-                  ) -> tuple[Toolpaths, CollisionReport, dict]:
+                  spacing: float = 2.0, lifts: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0),
+                  material: PrintedMaterial | None = None) -> tuple[Toolpaths, CollisionReport, dict]:
     """Toolpaths with every travel collision (kind TRAVEL_PATH) replaced by a lifted detour where one of
     ``lifts`` clears it, or else a route by the clearance plane that does, the report with those collisions
     removed and the others' indices shifted, and a summary (detours, how many by the clearance plane, their
-    largest rise above the travel's higher end, travels left colliding)."""
+    largest rise above the travel's higher end, travels left colliding). ``material``: the print's
+    (``PrintedMaterial.of_toolpaths``), when the caller has it; detours lay no material."""
     travel = np.flatnonzero(report.kind == TRAVEL_PATH)
     summary = {"n_travels_lifted": 0, "n_travels_by_clearance_plane": 0, "max_lift_mm": 0.0,
                "n_travels_unresolved": int(len(travel))}
     if not len(travel):
         return tp, report, summary
-    detours: dict[int, tuple[FloatArray, FloatArray]] = {}
-    for layer in np.unique(tp.layer[report.indices[travel]]):
-        material = earlier_material(tp, int(layer))
-        for j in report.indices[travel][tp.layer[report.indices[travel]] == layer]:
-            i = int(j) - 1
-            p, q, a, b = tp.xyz[i], tp.xyz[j], tp.axis[i], tp.axis[j]
-            route = _clear_route(material, p, q, a, b, nozzle, platform_z, min_height, np.asarray(lifts), spacing)
-            if route is not None:
-                detours[int(j)] = route[:2]
-                summary["max_lift_mm"] = max(summary["max_lift_mm"], route[2])
-                summary["n_travels_by_clearance_plane"] += int(len(route[0]) > 2)
+    material = PrintedMaterial.of_toolpaths(tp) if material is None else material
+    routes = _clear_routes(material, tp, report.indices[travel], material.visible_at(tp), nozzle, platform_z,
+                           min_height, np.asarray(lifts, np.float64), spacing)
+    detours = {j: route[:2] for j, route in routes.items()}
+    for route in routes.values():
+        summary["max_lift_mm"] = max(summary["max_lift_mm"], route[2])
+        summary["n_travels_by_clearance_plane"] += int(len(route[0]) > 2)
     if not detours:
         return tp, report, summary
     at = np.array(sorted(detours), np.int64)                       # insert each detour's points before these

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import torch
@@ -42,9 +42,28 @@ def available_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
 
 
 def limit_threads() -> int:
-    """Torch's intra-op threads set to the CPUs available (never more than torch chose); the count."""
-    import torch  # here, not at the top: the command line calls this before it needs torch
+    """Torch's intra-op threads set to the CPUs available (never more than torch chose); the count. Before torch is
+    imported (the command line calls this before it knows whether a field is optimised at all), a process allowed
+    fewer CPUs than the machine has gets ``OMP_NUM_THREADS`` (unless set), which torch reads on import."""
+    import sys
 
-    n = min(torch.get_num_threads(), available_cpus())
+    n = available_cpus()
+    if "torch" not in sys.modules:
+        if n < (os.cpu_count() or n):
+            os.environ.setdefault("OMP_NUM_THREADS", str(n))
+        return n
+    import torch
+
+    n = min(torch.get_num_threads(), n)
     torch.set_num_threads(n)
     return n
+
+
+def device_record(device: torch.device) -> dict[str, Any]:
+    """What an optimisation records of the device it ran on (the run's provenance reads it back)."""
+    import torch
+
+    out: dict[str, Any] = {"device": str(device), "torch_threads": torch.get_num_threads()}
+    if device.type == "cuda":
+        out.update(cuda_name=torch.cuda.get_device_name(device), cuda_version=torch.version.cuda)
+    return out

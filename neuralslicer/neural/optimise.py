@@ -27,6 +27,7 @@ from neuralslicer.fea.samples import StressSamples
 from neuralslicer.neural import losses as L
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.constraints import corrected_evaluation, enforce_collision_constraint, violating_pairs
+from neuralslicer.neural.device import device_record
 from neuralslicer.model.solid import Solid
 from neuralslicer.neural.head_collision import CollisionPool, collision_pool, refine_pool
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, platform_vertices, user_field_on_cage
@@ -670,7 +671,7 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
         wall_time_s=time.perf_counter() - t0, satisfaction=sat, pretrain_history=st.pretrain_history,
         weights={k: v.detach().cpu().numpy().copy() for k, v in st.fields.state_dict().items()},
         attrs={"config": problem.config.model_dump(mode="json"), "seed": problem.config.optim.seed,
-               "solver_backend": problem.arap.backend, "device": str(problem.device),
+               "solver_backend": problem.arap.backend, **device_record(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,
                "head_collision": head,
                "rollbacks": st.rollbacks, "stalled_progress": st.stop == "progress", "stop": st.stop,
