@@ -68,8 +68,9 @@ def exported_layers(run: Path):  # noqa: ANN201
     return layers
 
 
-def time_plans(layers, platform_z: float, stress, repeats: int) -> dict:  # noqa: ANN001
-    """Best wall / CPU time of plan_print with each infill (alternating), and the prints' figures."""
+def time_plans(layers, solid, stress, repeats: int) -> dict:  # noqa: ANN001
+    """Best wall / CPU time of plan_print with each infill (alternating), as the toolpaths step calls it (the
+    solid's H counts waypoints outside the part), and the prints' figures."""
     from neuralslicer.motion.pipeline import plan_print
     from neuralslicer.toolpath import ToolpathConfig
 
@@ -77,7 +78,7 @@ def time_plans(layers, platform_z: float, stress, repeats: int) -> dict:  # noqa
     for _ in range(repeats):
         for infill in ("zigzag", "stress"):
             t0, c0 = time.perf_counter(), time.process_time()
-            tp, _, metrics, _ = plan_print(layers, platform_z=platform_z, toolpath_cfg=ToolpathConfig(infill=infill),
+            tp, _, metrics, _ = plan_print(layers, platform_z=solid.platform_z, solid_H=solid.H, toolpath_cfg=ToolpathConfig(infill=infill),
                                            stress=stress if infill == "stress" else None)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             row = best.setdefault(infill, {"wall_s": wall, "cpu_s": cpu})
@@ -103,11 +104,10 @@ def run_case(name: str, run: Path | None, repeats: int) -> list[dict]:
         return []
     solid = implicit_solid(spec)
     stress = stress_field(run_fea(solid, spec.fea), spec.fea.top_fraction)
-    rows = [{"case": name, "layers": "planar", **time_plans(planar_layers(solid, SliceConfig()), solid.platform_z,
-                                                            stress, repeats)}]
+    rows = [{"case": name, "layers": "planar", **time_plans(planar_layers(solid, SliceConfig()), solid, stress, repeats)}]
     if run is not None:
         rows.append({"case": name, "layers": f"curved ({run})",
-                     **time_plans(exported_layers(run), solid.platform_z, stress, repeats)})
+                     **time_plans(exported_layers(run), solid, stress, repeats)})
     return rows
 
 
