@@ -148,5 +148,5 @@ def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: Art
     tp, program, metrics, collisions = plan_print(read_layers(layers).meshes, platform_z=solid.platform_z,
                                                   solid_H=solid.H, toolpath_cfg=config, profile=machine, t_max=t_max,
                                                   stress=stress)
-    get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("collisions", 0))
+    get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("n_collisions", 0))
     return encode_print(tp, program, metrics, collisions)
