@@ -121,6 +121,9 @@ def test_realised_overhang_at_most_the_one_shot_variants(model):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "measured (112 s): on the ring's own 40,064-tet mesh the faithful S3 leaves 0.96 % held-out overhang, the one-shot "
+    "variant (400 steps) 0.20 %: the issue's expectation does not hold; see docs/baselines.md"))
 @pytest.mark.skipif(not RING.is_file(), reason="S3-Slicer's ring is in ../shared/data")
 def test_ring_iterative_at_most_one_shot():
     from neuralslicer.baselines.s3 import optimise_s3
