@@ -507,5 +507,5 @@ def s3_field(
                          wall_time_s=time.perf_counter() - t0)
 
 
-__all__ = ["S3Mesh", "S3DeformResult", "S3FieldResult", "s3_deform", "s3_field", "stress_tets", "transfer_field", "rotations_between", "svd_rotations",
-           "support_less_rotations", "strength_rotations", "hybrid_rotations", "tet_volumes"]
+__all__ = ["S3Mesh", "S3DeformResult", "S3FieldResult", "s3_deform", "s3_field", "stress_tets", "transfer_field",
+           "rotations_between", "svd_rotations", "support_less_rotations", "strength_rotations", "hybrid_rotations"]
