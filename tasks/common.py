@@ -28,7 +28,7 @@ STEP_VERSIONS = {
     "fea": "1",
     "stress_samples": "1",
     "field": "4",
-    "field_s3": "2",
+    "field_s3": "3",
     "field_s3_oneshot": "1",
     "field_blend": "1",
     "layers": "5",

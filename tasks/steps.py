@@ -110,7 +110,7 @@ def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifa
 
     c, solid = read_cage(cage), read_solid(model)
     tet = next((m for m in solid.components if getattr(m, "tets", None) is not None), None)
-    with Progress("s3", total=config.outer_loops) as bar:
+    with Progress("s3", total=config.resolve(model.model, objectives).outer_loops) as bar:
         result = s3_field(c.vertices, c.tets, read_samples(samples),
                           (tet.vertices, tet.tets) if tet is not None and len(solid.components) == 1 else None,
                           read_stress(stress) if stress is not None else None, objectives, config, model.model,

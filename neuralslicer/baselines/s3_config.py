@@ -63,6 +63,10 @@ S3_PRESETS: dict[str, tuple[int, int, int, float, float, float, float, float, fl
     "bridgeSmall": (753, 1, 7, 0.0, 8.0, 3.0, 1.0, 50.0, 0.0),
     "GEbracket": (756, 1, 7, 0.0, 8.0, 3.0, 1.0, 50.0, 0.0),
 }
+#: what a field left None becomes without a row: the SL row 'tube' (MainWindow.cpp:737) and the SR weight of the SR rows
+S3_DEFAULTS: dict[str, float | int] = {"outer_loops": 1, "inner_loops": 7, "w_critical_sl": 15.0, "w_critical_sr": 8.0,
+                                       "w_neighbor_scale": 3.0, "w_regular_scale": 1.0, "w_smooth": 40.0,
+                                       "support_free_angle_deg": 30.0}
 PRESET_FIELDS = ("outer_loops", "inner_loops", "w_critical_sl", "w_critical_sr", "w_neighbor_scale", "w_regular_scale",
                  "w_smooth", "support_free_angle_deg")
 
@@ -79,35 +83,54 @@ class S3DeformConfig(BaseModel):
     on: Literal["model", "cage"] = Field(
         "model", description="the mesh S3 deforms: the input .tet itself when the model is one (S3's own setting), "
         "else the cage; 'cage': always the cage")
-    outer_loops: int = Field(1, ge=0, le=50, description="outer (ASAP) iterations, m_loopTime (spinBox_shapeUpIterNum)")
-    inner_loops: int = Field(7, ge=1, le=100, description="rotation/smoothing passes per outer iteration, "
-                             "m_innerLoopTime (spinBox_innerIterNum)")
-    w_critical_sl: float = Field(15.0, ge=0, description="ASAP weight of overhang tets, m_criticalTet_weight_SL")
-    w_critical_sr: float = Field(8.0, ge=0, description="ASAP weight of stress-critical tets, m_criticalTet_weight_SR")
-    w_neighbor_scale: float = Field(3.0, ge=0, description="weight of s_i - s_j across shared faces, "
-                                    "m_neighborScale_weight")
-    w_regular_scale: float = Field(1.0, gt=0, description="weight of s_e - 1, m_regularScale_weight")
-    w_smooth: float = Field(40.0, gt=0, description="quaternion Laplacian weight, m_globalSmooth_weight")
+    # The fields S3's table sets are None by default, meaning "S3's row": a value is explicit exactly when it is not
+    # None (pydantic's model_fields_set does not survive the dict round trips configs go through: a config read back
+    # from its dump marks every field as set, and the row would never apply).
+    outer_loops: int | None = Field(None, ge=0, le=50, description="outer (ASAP) iterations, m_loopTime "
+                                    "(spinBox_shapeUpIterNum); None: S3's row (1, ring 2)")
+    inner_loops: int | None = Field(None, ge=1, le=100, description="rotation/smoothing passes per outer iteration, "
+                                    "m_innerLoopTime (spinBox_innerIterNum); None: S3's row (7)")
+    w_critical_sl: float | None = Field(None, ge=0, description="ASAP weight of overhang tets, m_criticalTet_weight_SL; "
+                                        "None: S3's row (15)")
+    w_critical_sr: float | None = Field(None, ge=0, description="ASAP weight of stress-critical tets, "
+                                        "m_criticalTet_weight_SR; None: S3's row (8)")
+    w_neighbor_scale: float | None = Field(None, ge=0, description="weight of s_i - s_j across shared faces, "
+                                           "m_neighborScale_weight; None: S3's row (3, ring 5)")
+    w_regular_scale: float | None = Field(None, gt=0, description="weight of s_e - 1, m_regularScale_weight; None: "
+                                          "S3's row (1)")
+    w_smooth: float | None = Field(None, gt=0, description="quaternion Laplacian weight, m_globalSmooth_weight; None: "
+                                   "S3's row (40 SL, 50 SR and SL + SR)")
     keep_weight: float = Field(1.0, gt=0, description="weight keeping critical/bottom tets' quaternions, m_keep_SL "
                                "(DeformTet.h:180)")
-    support_free_angle_deg: float = Field(
-        30.0, gt=0, lt=90, description="overhang detection and target angle below the horizontal, m_supportFreeAngle")
+    support_free_angle_deg: float | None = Field(
+        None, gt=0, lt=90, description="overhang detection and target angle below the horizontal, m_supportFreeAngle; "
+        "None: S3's row (30)")
     bottom_height_mm: float = Field(1.0, ge=0, description="tets with a vertex this close to the floor are never "
                                     "overhanging and keep their rotation, m_bottom_height (DeformTet.h:185)")
 
     def resolve(self, name: str, objectives: Iterable[str]) -> "S3DeformConfig":
         """The parameters S3 would run with: the row of its table for the model name (preset 'auto') or the named
-        row, else the row of the case (SL: 'tube', SR: 'GEbracket', SL + SR: 'topopt_new4'); fields set explicitly
-        win over the row; the SL (SR) weight is 0 without 'sf' ('sr')."""
+        row, else the row of the case (SL: 'tube', SR: 'GEbracket', SL + SR: 'topopt_new4'); fields given (not None)
+        win over the row; the SL (SR) weight is 0 without 'sf' ('sr'). Preset 'none': the fields given, the rest
+        S3's SL defaults (:meth:`filled`)."""
         objectives = set(objectives)
         key = self.preset_row(name, objectives)
         values = dict(zip(PRESET_FIELDS, S3_PRESETS[key][1:])) if key else {}
-        values = {k: v for k, v in values.items() if k not in self.model_fields_set}
+        values = {k: v for k, v in values.items() if getattr(self, k) is None}
+        if key and not S3_PRESETS[key][4]:  # an SL row has no SR weight: S3's SR rows use 8
+            values.pop("w_critical_sr", None)
+        if key and not S3_PRESETS[key][8]:  # an SR row has no support-free angle: S3's SL rows use 30
+            values.pop("support_free_angle_deg", None)
         if "sf" not in objectives:
             values["w_critical_sl"] = 0.0
         if "sr" not in objectives:
             values["w_critical_sr"] = 0.0
-        return self.model_copy(update=values)
+        return self.model_copy(update=values).filled()
+
+    def filled(self) -> "S3DeformConfig":
+        """This config with every field left None set to S3's default (its SL row, MainWindow.cpp:737, and SR weight
+        8 of its SR rows)."""
+        return self.model_copy(update={k: v for k, v in S3_DEFAULTS.items() if getattr(self, k) is None})
 
     def preset_row(self, name: str, objectives: Iterable[str]) -> str:
         """The name of the row :meth:`resolve` takes ('' with preset 'none')."""

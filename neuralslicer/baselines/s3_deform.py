@@ -312,7 +312,7 @@ def s3_deform(
     progress(iteration, info) : after every outer iteration with the energies.
     """
     t0 = time.perf_counter()
-    cfg = config or S3DeformConfig()
+    cfg = (config or S3DeformConfig()).filled()  # fields left None: S3's defaults
     mesh = S3Mesh.build(vertices, tets, cfg.bottom_height_mm)
     m = len(mesh.tets)
     sr = np.zeros(m, dtype=bool) if sr_tets is None else np.asarray(sr_tets, dtype=bool)
