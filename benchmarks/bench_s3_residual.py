@@ -54,7 +54,9 @@ def main(which: str = "ring", outer: int = 2) -> None:
     states: list[np.ndarray] = []
     solve = d._asap_solve
 
-    def record(mesh, X, R, w, cfg):  # noqa: ANN001, ANN202 - the wrapped solver's own signature
+    def record(mesh: d.S3Mesh, X: np.ndarray, R: np.ndarray, w: np.ndarray, cfg: S3DeformConfig
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+        """The ASAP solve, keeping the positions it returns."""
         out = solve(mesh, X, R, w, cfg)
         states.append(out[0].copy())
         return out
