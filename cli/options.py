@@ -46,8 +46,9 @@ def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output fold
     p.add_argument("--objectives", default=None,
                    help="comma list of sf, sr, po, gc (global head collision), ca (local collision constraint), "
                         "or none (default sf,po,gc,ca[,sr])")
-    p.add_argument("--method", choices=("neural", "s3"), default=None,
-                   help="the field: the Neural Slicer (neural, default) or the S3-Slicer baseline (s3)")
+    p.add_argument("--method", choices=("neural", "s3", "s3_oneshot"), default=None,
+                   help="the field: the Neural Slicer (neural, default), the S3-Slicer baseline (s3: its iterative "
+                        "deformation, docs/baselines.md) or its one-shot variant (s3_oneshot)")
     p.add_argument("--max-steps", type=int, default=None, help="optimisation step budget")
     p.add_argument("--network", choices=tuple(NETWORK_PRESETS), default=None, help="network size preset")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device (default auto)")

@@ -90,7 +90,7 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
     steps = int(field_attrs.get("steps", 0) or 0)
     # a field computed in this run that started from a checkpoint: the checkpoint it resumed from
     states = dict(run.states)
-    field_state = states.get("field", states.get("field_s3"))
+    field_state = states.get("field", states.get("field_s3", states.get("field_s3_oneshot")))
     resumed_step = field_attrs.get("resumed_from_step") if field_state != "Cached" else None
     result = {
         "name": branch.name,

@@ -24,7 +24,8 @@ from tasks.common import run_step
 from tasks.export import export_task
 from tasks.fea import fea_task, printed_fea_task, stress_samples_task, verify_task
 from tasks.provenance import record_provenance
-from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, s3_field_task, samples_task,
+from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, s3_field_task, s3_oneshot_field_task,
+                         samples_task,
                          solid_task, toolpaths_task)
 
 
@@ -192,6 +193,9 @@ def slice_pipeline(
         if config.method == "s3":
             field_ref = log.run(s3_field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
                                 objectives=objectives, config=config.s3)
+        elif config.method == "s3_oneshot":
+            field_ref = log.run(s3_oneshot_field_task, store=store, model=model, cage=cage, samples=samples,
+                                stress=stress, objectives=objectives, config=config.s3_oneshot)
         else:
             field_ref = log.run(field_task, store=store, model=model, cage=cage, samples=samples, stress=stress,
                                 objectives=objectives, config=neural, user_field=user, **refine)
@@ -199,7 +203,7 @@ def slice_pipeline(
         printing = print_layers(layers)
         attempts.append((label, field_ref, printing))
         collisions = n_collisions(printing)
-        if collisions == 0 or not objectives or config.method == "s3":
+        if collisions == 0 or not objectives or config.method != "neural":
             break  # S3's own answer to collisions is a smoother rotation field: the planar blend below serves it
         hits = len(read_part_collisions(printing)[0])
         if "gc" in objectives and hits and refinements < config.collision_refinements:

@@ -180,7 +180,8 @@ def _as_printed(config: SliceConfig) -> SliceConfig:
 
 
 def methods_branches(model: str, options: StudyOptions) -> list[Branch]:
-    """Branches of the methods study: the Neural Slicer, the S3-Slicer baseline and planar layers, on one cage; with a
+    """Branches of the methods study: the Neural Slicer, the S3-Slicer baseline (iterative, and its one-shot variant)
+    and planar layers, on one cage; with a
     load case all three print the same infill (stress-following unless the configuration names one), so that the
     strength figures compare the layers, not the infill."""
     out, store = Path(options.out_dir), _store(options)
@@ -188,6 +189,7 @@ def methods_branches(model: str, options: StudyOptions) -> list[Branch]:
     if load_branch_spec(model, options.up).fea is not None and base.toolpath.infill == "auto":
         base = _variant(base, "study", toolpath__infill="stress")
     variants = {"neural": _variant(base, "study", method="neural"), "s3": _variant(base, "study", method="s3"),
+                "s3_oneshot": _variant(base, "study", method="s3_oneshot"),
                 "planar": _variant(base, "study", objectives=[])}
     return [Branch(name=name, model=model, up=options.up, config=cfg, out_dir=str(out / name), store=store,
                    parameters={"method": "planar layers" if name == "planar" else name}) for name, cfg in variants.items()]

@@ -7,7 +7,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, Field, ValidationError
 
-from neuralslicer.baselines.s3_config import S3Config
+from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import CageConfig
 from neuralslicer.errors import InputError
 from neuralslicer.layers import LayerConfig
@@ -31,16 +31,18 @@ class SliceConfig(BaseModel):
 
     model_config = {"extra": "forbid"}
 
-    method: Literal["neural", "s3"] = Field(
-        "neural", description="how the printing field is computed: the Neural Slicer (neural) or the S3-Slicer "
-        "baseline (s3: per-element rotations optimised in the deformed space, realised by ARAP)")
+    method: Literal["neural", "s3", "s3_oneshot"] = Field(
+        "neural", description="how the printing field is computed: the Neural Slicer (neural), the S3-Slicer "
+        "baseline (s3: its iterative deformation as DeformTet.cpp runs it) or the one-shot variant (s3_oneshot: "
+        "per-element rotations optimised in the deformed space, one ARAP solve of the cage)")
     objectives: list[Objective] | None = Field(
         None, description="default: sf, po, gc (global head collision) and ca (local collision constraint), "
         "+ sr when the spec has loads")
     samples: SampleConfig = Field(default_factory=SampleConfig)
     cage: CageConfig = Field(default_factory=CageConfig)
     neural: NeuralConfig = Field(default_factory=NeuralConfig)
-    s3: S3Config = Field(default_factory=S3Config, description="the S3-Slicer baseline (method: s3)")
+    s3: S3DeformConfig = Field(default_factory=S3DeformConfig, description="the S3-Slicer baseline (method: s3)")
+    s3_oneshot: S3Config = Field(default_factory=S3Config, description="the one-shot S3 variant (method: s3_oneshot)")
     layers: LayerConfig = Field(default_factory=LayerConfig)
     alpha_deg: float = Field(45.0, gt=0, lt=90, description="self-supporting angle for the SF metrics")
     toolpath: ToolpathConfig = Field(default_factory=ToolpathConfig)

@@ -193,6 +193,8 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
         "field.steps": fa.get("steps", 0), "field.stop": fa.get("stop", ""),
         "field.blend_planar": fa.get("blend_planar", 0.0),
     }
+    if fa.get("energy_by_iteration"):  # S3: its fabrication energy at the start of each outer iteration and at the end
+        metrics["field.energy_by_iteration"] = fa["energy_by_iteration"]
     metrics.update(heldout_overhang(run, alpha_deg))
     metrics.update({f"layers.{k}": v for k, v in run.layers.report.items()})
     metrics.update({f"loss.{k}": v for k, v in (fa.get("final") or {}).items()})

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from prefect import get_run_logger
 
-from neuralslicer.baselines.s3_config import S3Config
+from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
 from neuralslicer.fea.samples import stress_field
@@ -104,8 +104,25 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
 
 @pipeline_task("field_s3")
 def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
-                  stress: ArtifactRef | None, objectives: list[str], config: S3Config) -> tuple[dict, dict]:
-    """The S3-Slicer baseline's field G: per-element rotations optimised in the deformed space, realised by ARAP."""
+                  stress: ArtifactRef | None, objectives: list[str], config: S3DeformConfig) -> tuple[dict, dict]:
+    """S3-Slicer's field G: its iterative deformation of the model's tet mesh (or the cage), carried to the cage."""
+    from neuralslicer.baselines.s3_deform import s3_field
+
+    c, solid = read_cage(cage), read_solid(model)
+    tet = next((m for m in solid.components if getattr(m, "tets", None) is not None), None)
+    with Progress("s3", total=config.resolve(model.model, objectives).outer_loops) as bar:
+        result = s3_field(c.vertices, c.tets, read_samples(samples),
+                          (tet.vertices, tet.tets) if tet is not None and len(solid.components) == 1 else None,
+                          read_stress(stress) if stress is not None else None, objectives, config, model.model,
+                          progress=lambda it, info: bar.update(it, total=float(info["fabrication_sl"])))
+    get_run_logger().info("s3 on the %s mesh: %s", result.on, result.summary().get("satisfaction"))
+    return result.to_arrays()
+
+
+@pipeline_task("field_s3_oneshot")
+def s3_oneshot_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
+                          stress: ArtifactRef | None, objectives: list[str], config: S3Config) -> tuple[dict, dict]:
+    """The one-shot S3 variant's field G: per-element rotations optimised in the deformed space, one ARAP solve."""
     from neuralslicer.baselines.s3 import optimise_s3   # torch: only when a field is optimised
 
     c = read_cage(cage)
@@ -113,9 +130,9 @@ def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifa
         result = optimise_s3(c.vertices, c.tets, read_samples(samples), read_stress(stress) if stress is not None else None,
                              objectives, config, read_solid(model).platform_z,
                              progress=lambda step, info: bar.update(step, total=float(info["total"])))
-    get_run_logger().info("s3: %d steps, %s", result.steps, result.summary().get("satisfaction"))
+    get_run_logger().info("s3_oneshot: %d steps, %s", result.steps, result.summary().get("satisfaction"))
     arrays, attrs = result.to_arrays()
-    return arrays, {**attrs, "objectives": sorted(set(objectives) & {"sf", "sr"}), "wall_time_s": result.wall_time_s}
+    return arrays, {**attrs, "kind": "s3_oneshot", "method": "s3_oneshot", "objectives": sorted(set(objectives) & {"sf", "sr"}), "wall_time_s": result.wall_time_s}
 
 
 @pipeline_task("field_blend")

@@ -36,11 +36,12 @@ def test_cage_branches_vary_only_the_element_count(tmp_path: Path) -> None:
 
 
 def test_methods_branches_print_each_method_as_computed(tmp_path: Path) -> None:
-    """neural / s3 / planar on one store, each printing its own field (no re-optimisation, no planar blend)."""
+    """neural / s3 / s3_oneshot / planar on one store, each printing its own field (no re-optimisation, no planar blend)."""
     model = torus_file(tmp_path)
     branches = methods_branches(str(model), StudyOptions(out_dir=str(tmp_path / "m"), config=tiny_config()))
-    assert [(b.name, b.config.method) for b in branches] == [("neural", "neural"), ("s3", "s3"), ("planar", "neural")]
-    assert branches[2].config.objectives == [] and branches[0].config.objectives == tiny_config().objectives
+    assert [(b.name, b.config.method) for b in branches] == [("neural", "neural"), ("s3", "s3"),
+                                                                  ("s3_oneshot", "s3_oneshot"), ("planar", "neural")]
+    assert branches[3].config.objectives == [] and branches[0].config.objectives == tiny_config().objectives
     assert all(b.config.collision_retries == 0 and b.config.collision_refinements == 0 and b.config.collision_fallback == "none" for b in branches)
     assert len({b.store for b in branches}) == 1
 
