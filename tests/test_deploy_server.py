@@ -19,6 +19,8 @@ import yaml
 from storage import ArtifactStore
 from studies_common import shared_store, tiny_config, torus_file
 
+pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
+
 REPO = Path(__file__).resolve().parents[1]
 PREFECT = str(Path(sys.executable).with_name("prefect"))
 

@@ -18,7 +18,7 @@ import yaml
 from conftest import REPO, Planted, fast_config
 from cli.main import main
 
-pytestmark = pytest.mark.usefixtures("prefect_server")
+pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
 
 def slice_cmd(model: Path, out: Path, cfg: Path, *extra: str) -> list[str]:

@@ -13,7 +13,7 @@ from conftest import fast_config
 from neuralslicer.config import SliceConfig
 from neuralslicer.model.spec import load_spec
 
-pytestmark = pytest.mark.usefixtures("prefect_server")
+pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
 
 def beam_spec(tmp_path: Path, force_n: float = -40.0) -> Path:

@@ -185,6 +185,7 @@ def _optimise(torus, objectives: set[str]):
     return optimise_field(V, T, samples, config=cfg, platform_z=0.0, collision_pool=pool)
 
 
+@pytest.mark.slow
 def test_gc_removes_the_collisions_of_a_closed_loop(torus):
     V, T, B, probe = torus
     planar = ScalarField.height(V, T)

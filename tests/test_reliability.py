@@ -20,7 +20,7 @@ import yaml
 from conftest import REPO, fast_config, l_part_mesh
 from cli.main import main
 
-pytestmark = pytest.mark.usefixtures("prefect_server")
+pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
 #: steps killed by SIGKILL as soon as they start: before the optimisation, inside it, after it
 KILL_AT = ("cage", "field", "toolpaths")

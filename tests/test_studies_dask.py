@@ -11,6 +11,8 @@ import pytest
 from storage import ArtifactStore
 from studies_common import shared_store, tiny_config, torus_file
 
+pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
+
 pytest.importorskip("prefect_dask")
 
 

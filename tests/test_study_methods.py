@@ -9,7 +9,7 @@ import yaml
 from conftest import fast_config
 from cli.main import main
 
-pytestmark = pytest.mark.usefixtures("prefect_server")
+pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
 
 def test_methods_study_on_a_part_with_a_flat_overhang(tmp_path, small_part):
