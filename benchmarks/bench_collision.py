@@ -29,7 +29,7 @@ import numpy as np
 import psutil
 
 ROOT = Path(__file__).resolve().parent
-DATA = ROOT.parents[1] / "shared" / "data"
+DATA = ROOT.parent / "neuralslicer" / "data"
 RESULTS = ROOT / "results" / "bench_collision.json"
 FIELDS = ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")
 #: curvature of the default field G = z + CURVE r^2 (1/mm)

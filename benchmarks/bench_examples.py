@@ -1,4 +1,4 @@
-"""Every shipped example and every model of ../shared/data sliced with the default command: is the optimised
+"""Every shipped example and every sample model of neuralslicer/data sliced with the default command: is the optimised
 field printed itself, collision-free, without the planar blend?
 
     .venv/bin/python benchmarks/bench_examples.py [NAME ...]             # slice these (default: all), fresh stores
@@ -29,7 +29,7 @@ import psutil
 
 ROOT = Path(__file__).resolve().parent
 REPO = ROOT.parent
-DATA = REPO.parent / "shared" / "data"
+DATA = REPO / "neuralslicer" / "data"
 EXAMPLES = REPO / "neuralslicer" / "examples"
 RESULTS = ROOT / "results" / "bench_examples.json"
 

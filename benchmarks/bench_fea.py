@@ -3,7 +3,7 @@
 Cases (each run in its own process so that the peak resident memory is its own):
   beam_10k, beam_100k   cantilever 100x10x10 mm (analytic box), clamped at x=0, 10 N down at the
                         tip; the tip deflection is compared with Euler-Bernoulli (2.0 mm)
-  ring_100k             /work/shared/data/ring.tet (up y), platform support, 100 N down on the top
+  ring_100k             neuralslicer/data/ring.tet (up y), platform support, 100 N down on the top
                         2 mm; max von Mises, |T|, and the anisotropic check with planar layers
   beam_1m               (with --large) the cantilever at 1M voxels
 
@@ -29,7 +29,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-RING = Path(os.environ.get("NEURALSLICER_DATA", "/work/shared/data")) / "ring.tet"
+RING = Path(os.environ.get("NEURALSLICER_DATA", Path(__file__).resolve().parents[1] / "neuralslicer" / "data")) / "ring.tet"
 
 
 def _beam(voxels: int) -> dict:

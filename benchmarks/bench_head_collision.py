@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+DATA = REPO / "neuralslicer" / "data"
 RESULTS = Path(__file__).parent / "results" / "bench_head_collision.json"
 
 

@@ -22,7 +22,7 @@ from neuralslicer.model import Solid, implicit_solid, load_spec, spec_for_file
 from neuralslicer.samples import surface_samples
 
 ROOT = Path(__file__).resolve().parent
-RING = Path("/work/shared/data/ring.tet")
+RING = Path(__file__).resolve().parents[1] / "neuralslicer" / "data" / "ring.tet"
 
 
 def timed(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[Any, float]:

@@ -185,8 +185,7 @@ def ring_inputs(n_elements: int = 5000, n_samples: int = 8000) -> dict[str, np.n
     from neuralslicer.model.spec import spec_for_file
     from neuralslicer.samples import surface_samples
 
-    ring = Path(__file__).resolve().parents[2] / "shared" / "data" / "ring.tet"
-    ring = ring if ring.exists() else Path("/work/shared/data/ring.tet")
+    ring = Path(__file__).resolve().parents[1] / "neuralslicer" / "data" / "ring.tet"
     solid = implicit_solid(spec_for_file(ring, up="y"))
     B = surface_samples(solid, n_samples)
     check = np.concatenate([interior_points(solid.H, solid.bounds, 2000), B.points])
@@ -288,7 +287,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("part", choices=["solve", "steps", "ring", "bridge", "all"])
-    p.add_argument("--bridge-model", default=str(Path(os.environ.get("NEURALSLICER_DATA", "/work/shared/data"))
+    p.add_argument("--bridge-model", default=str(Path(os.environ.get("NEURALSLICER_DATA", Path(__file__).resolve().parents[1] / "neuralslicer" / "data"))
                                                    / "topopt_new4.tet"))
     p.add_argument("--bridge-up", default="y")
     p.add_argument("--bridge-elements", type=int, default=47_000)

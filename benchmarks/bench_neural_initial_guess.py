@@ -43,8 +43,7 @@ def ring_inputs(reduced: bool) -> dict[str, np.ndarray]:
     from neuralslicer.model.solid import implicit_solid
     from neuralslicer.samples import surface_samples
 
-    ring = ROOT.parent / "shared" / "data" / "ring.tet"
-    ring = ring if ring.exists() else Path("/work/shared/data/ring.tet")
+    ring = ROOT / "neuralslicer" / "data" / "ring.tet"
     solid = implicit_solid(load_branch_spec(str(ring), "y"))
     cfg = SliceConfig()
     if reduced:

@@ -25,7 +25,7 @@ from neuralslicer.model import implicit_solid, spec_for_file
 from neuralslicer.scalar_field import ScalarField
 
 ROOT = Path(__file__).resolve().parent
-RING = ROOT.parents[1] / "shared" / "data" / "ring.tet"
+RING = ROOT.parent / "neuralslicer" / "data" / "ring.tet"
 
 
 def timed(fn, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN201

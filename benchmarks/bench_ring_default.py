@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent
-RING = ROOT.parents[1] / "shared" / "data" / "ring.tet"
+RING = ROOT.parent / "neuralslicer" / "data" / "ring.tet"
 RESULTS = ROOT / "results" / "bench_ring_default.json"
 
 

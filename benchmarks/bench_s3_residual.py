@@ -33,7 +33,7 @@ def load(which: str) -> tuple[np.ndarray, np.ndarray, int]:
         from neuralslicer.frames import apply_up
         from neuralslicer.model.io import read_volume
 
-        V, T = read_volume("/work/shared/data/ring.tet")
+        V, T = read_volume(str(Path(__file__).resolve().parents[1] / "neuralslicer" / "data" / "ring.tet"))
         return apply_up(V, "y"), T, 20000
     return {"sphere": sphere, "lpart": l_part}[which]() + (3000,)
 

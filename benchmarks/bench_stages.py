@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 import psutil  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
-DATA = ROOT.parents[1] / "shared" / "data"
+DATA = ROOT.parent / "neuralslicer" / "data"
 RESULTS = ROOT / "results"
 MODELS = {
     "ring": (["slice", str(DATA / "ring.tet"), "--up", "y"], {}),

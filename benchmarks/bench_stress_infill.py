@@ -7,8 +7,8 @@ For each case the model's FEA gives the stress field, and the same layers are pl
 zig-zag and with the stress-following infill, alternately, ``--repeats`` times each; the best wall and CPU time of
 each is kept. Layers: planar (G = z on a default cage), and with ``--run CASE=DIR`` the curved layers a slice of that
 case wrote to its output folder (``layers/*.ply``: ``make demo``'s ``runs/demo`` for the bracket, a default
-``neuralslicer slice ../shared/data/ring.tet --up y --out runs/ring`` for the ring). The ring
-(from ../shared/data, skipped without it) gets a load case: the platform held, 100 N down on its top 2 mm.
+``neuralslicer slice neuralslicer/data/ring.tet --up y --out runs/ring`` for the ring). The ring
+(shipped in neuralslicer/data) gets a load case: the platform held, 100 N down on its top 2 mm.
 
 Prints a table with the load average and writes ``benchmarks/results/bench_stress_infill.json``.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent
 EXAMPLES = ROOT.parent / "neuralslicer" / "examples"
-DATA = ROOT.parents[1] / "shared" / "data"
+DATA = ROOT.parent / "neuralslicer" / "data"
 RESULTS = ROOT / "results" / "bench_stress_infill.json"
 
 

@@ -38,7 +38,7 @@ from neuralslicer.toolpath import ToolpathConfig, toolpaths, write_waypoints_csv
 from neuralslicer.toolpath.synthetic import cap_stack, planar_stack
 
 ROOT = Path(__file__).resolve().parent
-DATA = ROOT.parents[1] / "shared" / "data"
+DATA = ROOT.parent / "neuralslicer" / "data"
 PARTS = {"bunny": "bunny_closed_low_res.stl", "coin": "overhang_coin_closed_low_res.stl"}
 RESULTS = ROOT / "results" / "bench_toolpath.json"
 STAGES = ("toolpaths", "motion", "collisions", "gcode", "csv")

@@ -11,7 +11,7 @@
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
 cd "$repo"
-ring="$repo/../shared/data/ring.tet"
+ring="$repo/neuralslicer/data/ring.tet"
 device=cuda
 out="${TMPDIR:-/tmp}/neuralslicer-device-ring"
 dry=0

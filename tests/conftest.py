@@ -21,7 +21,6 @@ os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
 # a command's own Prefect server stops with it (flows/local_api.py; tests of the server left up set their own)
 os.environ["NEURALSLICER_API_IDLE_S"] = "0"
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -36,11 +35,10 @@ def prefect_server() -> Iterator[None]:
 
 @pytest.fixture(scope="session")
 def ring_path() -> Path:
-    """The Ring of the paper (y-up .tet), from ../shared/data."""
-    path = SHARED_DATA / "ring.tet"
-    if not path.is_file():
-        pytest.skip(f"{path} is not available")
-    return path
+    """The Ring of the paper (y-up .tet), shipped in neuralslicer/data."""
+    from neuralslicer.data import sample
+
+    return sample("ring.tet")
 
 
 def l_part_mesh() -> trimesh.Trimesh:

@@ -13,11 +13,12 @@ from scipy.spatial import cKDTree
 from neuralslicer.baselines.s3_config import S3_PRESETS, S3Config, S3DeformConfig
 from neuralslicer.baselines.s3_deform import (S3Mesh, hybrid_rotations, s3_deform, s3_field, strength_rotations,
                                               support_less_rotations, svd_rotations, transfer_field)
+from neuralslicer.data import DATA_DIR
 from neuralslicer.metrics import overhang_area_fraction
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.tetmesh import TET_FACES, TetLocator, barycentric_gradients, boundary_faces, box_tet_grid, orient_tets
 
-RING = Path("/work/shared/data/ring.tet")
+RING = DATA_DIR / "ring.tet"
 
 
 def _solid(keep, n: tuple[int, int, int], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +154,6 @@ def test_residual_overhang_on_the_ball_is_next_to_the_floor():
     "locus, x = -7 mm): the two sides are turned in opposite senses and the smoothing leaves the faces between "
     "unrotated (deformed normal z -0.97 there, -0.42 to -0.56 on its left); 1-4 outer iterations all leave 0.96 %. "
     "See docs/baselines.md"))
-@pytest.mark.skipif(not RING.is_file(), reason="S3-Slicer's ring is in ../shared/data")
 def test_ring_iterative_at_most_one_shot():
     from neuralslicer.baselines.s3 import optimise_s3
     from neuralslicer.frames import apply_up

@@ -6,11 +6,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from neuralslicer.data import DATA_DIR
 from neuralslicer.errors import InputError
 from neuralslicer.model import implicit_solid, read_segments, read_tet, read_volume, spec_for_file
 from neuralslicer.topology import genus, surface_topology, tet_boundary_genus
 
-RING = Path("/work/shared/data/ring.tet")
+RING = DATA_DIR / "ring.tet"
 
 CUBE_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], float)
 # Kuhn subdivision of the unit cube into 6 tets along the 0-7 diagonal
@@ -123,3 +124,26 @@ def test_topology_counts() -> None:
     open_top = annulus.faces[annulus.face_normals[:, 2] < 0.99]  # drop the top ring faces
     t = surface_topology(open_top)
     assert t.boundary_loops.tolist() == [2] and t.genus.tolist() == [0]
+
+
+def test_the_sample_models_ship_with_the_package_and_an_unknown_name_is_a_clear_error() -> None:
+    """ring.tet resolves inside the package (no ../shared needed); an unknown name lists the shipped ones."""
+    from neuralslicer.data import sample
+
+    assert sample("ring.tet") == DATA_DIR / "ring.tet" and read_tet(sample("ring.tet"))[1].shape == (40064, 4)
+    with pytest.raises(FileNotFoundError, match="topopt_new4.tet"):
+        sample("missing.tet")
+
+
+def test_no_code_or_doc_names_a_machine_path_or_the_shared_data_folder() -> None:
+    """Code, tests, benchmarks, docs and deployments resolve data relative to the package (run records aside)."""
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[1]
+    patterns = ("/" + "work/", "shared" + "/data")   # split, so that this file does not match itself
+    files = subprocess.run(["git", "ls-files", "*.py", "*.md", "*.yaml", "*.sh", "*.toml", "Makefile"], cwd=repo,
+                           capture_output=True, text=True, check=True).stdout.split()
+    bad = [f"{f}:{i}" for f in files if not f.startswith("docs/studies/") and (repo / f).is_file()
+           for i, line in enumerate((repo / f).read_text(errors="replace").splitlines(), 1)
+           if any(p in line for p in patterns)]
+    assert not bad, bad

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from neuralslicer.data import DATA_DIR
 from neuralslicer.errors import InputError
 from neuralslicer.model import implicit_solid, load_spec, spec_digest, spec_for_file
 
@@ -78,7 +79,7 @@ def test_tubes_threshold_form(folder: Path) -> None:
 def test_spec_for_file_and_digest(folder: Path, tmp_path: Path) -> None:
     spec = spec_for_file(folder / "part.stl", up="x")
     assert spec.components[0].type == "mesh" and spec.up == "x"
-    assert spec_for_file("/work/shared/data/ring.tet", up="y").components[0].type == "tet"
+    assert spec_for_file(DATA_DIR / "ring.tet", up="y").components[0].type == "tet"
     with pytest.raises(InputError, match="unknown model format"):
         spec_for_file(folder / "lattice.txt")
     d1 = spec_digest(load_spec(write(folder, MINIMAL)))
@@ -150,7 +151,7 @@ def test_fea_block_is_parsed(folder: Path) -> None:
         load_spec(write(folder, MINIMAL + "fea:\n  material: {youngs_modulus_mpa: -1}\n"))
 
 
-DATA = Path("/work/shared/data")
+DATA = DATA_DIR
 
 
 def test_shared_meshes_open_vase_needs_a_shell(tmp_path: Path) -> None:
