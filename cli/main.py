@@ -137,10 +137,21 @@ def add_slice_parser(sub: Any) -> None:
     p.set_defaults(func=cmd_slice)
 
 
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml), or 'unknown' when run from an uninstalled tree."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("neuralslicer")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def make_parser() -> ArgumentParser:
     """The argument parser of every subcommand."""
     parser = ArgumentParser(prog="neuralslicer", description="Curved layers for multi-axis 3D printing (Neural Slicer).")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument("--version", action="version", version=f"neuralslicer {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     add_slice_parser(sub)
     add_fea_parser(sub)

@@ -219,3 +219,16 @@ def test_the_slice_help_names_the_preflights_layer_limit():
 
     slice_parser = next(a for a in make_parser()._subparsers._group_actions).choices["slice"]
     assert f"{MAX_LAYERS:,}" in slice_parser.format_help().replace("\n", " ")
+
+
+def test_version_prints_the_version_pyproject_declares(capsys) -> None:
+    """`neuralslicer --version` prints the version of pyproject.toml (read here with tomllib) and exits 0."""
+    import tomllib
+    from pathlib import Path
+
+    from cli.main import make_parser
+
+    declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
+    with pytest.raises(SystemExit) as stop:
+        make_parser().parse_args(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.strip() == f"neuralslicer {declared}"
