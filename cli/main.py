@@ -63,10 +63,11 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
 
 def print_summary(summary: dict[str, Any]) -> None:
     """The tasks' states and where the results are."""
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console(stderr=False)
+    from neuralslicer.console import table_console
+
+    console = table_console()
     table = Table(title="neuralslicer slice")
     table.add_column("task")
     table.add_column("state")

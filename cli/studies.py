@@ -89,10 +89,10 @@ TERMINAL_SKIP = ("L_sf", "L_po", "L_sr", "L_hs", "L_hq", "L_ca", "overhang plana
 
 def print_study(study: dict[str, Any]) -> None:
     """The study table on the terminal."""
-    from rich.console import Console
     from rich.table import Table
 
     from flows.study_report import _fmt, table_rows
+    from neuralslicer.console import table_console
 
     rows = table_rows(study)
     cols: list[str] = []
@@ -103,7 +103,7 @@ def print_study(study: dict[str, Any]) -> None:
         table.add_column(c)
     for r in rows:
         table.add_row(*(_fmt(r.get(c)) for c in cols))
-    console = Console()
+    console = table_console()
     console.print(table)
     console.print(f"study: {study['out_dir']}/study.md, study.json ({study['wall_s']:.1f} s)")
 

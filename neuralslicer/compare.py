@@ -93,10 +93,11 @@ def _cell(value: Any) -> str:
 
 def print_comparison(diffs: list[Difference], run_a: str | Path, run_b: str | Path) -> None:
     """Print the comparison as a rich table per section."""
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console()
+    from neuralslicer.console import table_console
+
+    console = table_console()
     for section in ("parameters", "metrics"):
         rows = [d for d in diffs if d.section == section]
         table = Table(title=f"{section}: {run_a} vs {run_b}")

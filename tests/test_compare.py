@@ -94,3 +94,15 @@ def test_compare_command_prints_a_table_and_exits_0(tmp_path: Path) -> None:
     bad = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(tmp_path / "x")],
                          cwd=REPO, capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "neuralslicer: error:" in bad.stderr
+
+
+def test_tables_written_to_a_file_or_log_are_not_cut(monkeypatch, capsys) -> None:
+    """Redirected output (no terminal, no COLUMNS) keeps every cell whole: a scheduler's log stays readable."""
+    from neuralslicer.compare import Difference, print_comparison
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    key = "sf.heldout.overhang_area_fraction_layers." + "x" * 80
+    print_comparison([Difference(section="metrics", key=key, a=0.25, b=0.125, equal=False, delta=-0.125)],
+                     "runs/" + "a" * 60, "runs/" + "b" * 60)
+    out = capsys.readouterr().out
+    assert key in out and "…" not in out and "0.125" in out
