@@ -197,9 +197,41 @@ def plot_collision_map(path: Path, prints: dict[str, tuple[np.ndarray, np.ndarra
     _save(fig, path)
 
 
+def summary_rows(metrics: dict) -> list[tuple[str, str]]:
+    """What a user looks for first, from the metrics a run has: layers, time, material, collisions, overhang and
+    strain against planar layers."""
+    m, rows = metrics, []
+
+    def pct(x: float) -> str:
+        return f"{100 * x:.2f} %"
+
+    if "n_layers" in m:
+        rows.append(("layers", f"{m['n_layers']}"))
+    if "estimated_print_time_s" in m:
+        t = float(m["estimated_print_time_s"])
+        rows.append(("estimated print time", f"{int(t // 3600)} h {int(t % 3600 // 60):02d} min"))
+    if "material_mm3" in m:
+        rows.append(("material", f"{m['material_mm3'] / 1000:.1f} cm³"))
+    if "n_collisions" in m:
+        rows.append(("nozzle collisions", f"{m['n_collisions']}"))
+    if "sf.heldout.overhang_area_fraction_layers" in m and "sf.heldout.overhang_area_fraction_planar" in m:
+        rows.append(("overhang, held out, exported layers (planar)",
+                     f"{pct(m['sf.heldout.overhang_area_fraction_layers'])} "
+                     f"({pct(m['sf.heldout.overhang_area_fraction_planar'])})"))
+    if "fea.max_strain" in m and "fea.planar_zigzag.max_strain" in m:
+        rows.append(("max strain, printed (planar + zig-zag)",
+                     f"{m['fea.max_strain']:.4g} ({m['fea.planar_zigzag.max_strain']:.4g}, "
+                     f"{100 * (m['fea.max_strain'] / m['fea.planar_zigzag.max_strain'] - 1):+.1f} %)"))
+    return rows
+
+
 def markdown_report(title: str, metrics: dict, figures: dict[str, str], sections: dict[str, str] | None = None) -> str:
-    """A Markdown report: a metrics table, extra sections, and the figures."""
-    lines = [f"# {title}", "", "| metric | value |", "| --- | --- |"]
+    """A Markdown report: a summary, every metric, extra sections, and the figures."""
+    lines = [f"# {title}", ""]
+    summary = summary_rows(metrics)
+    if summary:
+        lines += ["## Summary", "", "| | |", "| --- | --- |", *(f"| {k} | {v} |" for k, v in summary), ""]
+    lines += ["## All metrics", "", "| metric | value |", "| --- | --- |"]
     for key in sorted(metrics):
         value = metrics[key]
         if isinstance(value, float):

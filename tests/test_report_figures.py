@@ -166,3 +166,19 @@ def test_draw_figures_embeds_the_operator_pictures(tmp_path: Path, cap_toolpaths
     assert {"Layers (pyvista)", "Layers (matplotlib)"} & set(figures)
     for rel in figures.values():
         assert_picture(tmp_path / rel)
+
+
+def test_the_report_opens_with_what_a_user_looks_for_first() -> None:
+    """report.md: a summary (layers, time, material, collisions, overhang and strain against planar) before the
+    alphabetical table of every metric; a run without an FEA or held-out figures leaves those rows out."""
+    metrics = {"n_layers": 56, "estimated_print_time_s": 9574.7, "material_mm3": 24_600.0, "n_collisions": 0,
+               "sf.heldout.overhang_area_fraction_layers": 0.0025, "sf.heldout.overhang_area_fraction_planar": 0.0046,
+               "fea.max_strain": 1.813e-3, "fea.planar_zigzag.max_strain": 2.572e-3, "beads.n_capped": 63}
+    text = report.markdown_report("t", metrics, {})
+    summary = text[text.index("## Summary"):text.index("## All metrics")]
+    for row in ("| layers | 56 |", "| estimated print time | 2 h 39 min |", "| material | 24.6 cm³ |",
+                "| nozzle collisions | 0 |", "(0.46 %)", "0.001813 (0.002572, -29.5 %)"):
+        assert row in summary, row
+    assert "beads" not in summary and "| `beads.n_capped` | 63 |" in text
+    bare = report.summary_rows({"n_layers": 3})
+    assert bare == [("layers", "3")]
