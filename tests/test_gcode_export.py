@@ -393,3 +393,28 @@ def test_bulk_number_formatting_matches_printf():
     assert modal.present.tolist() == [True, False, True, False]
     with pytest.raises(ValueError):
         fixed_point(np.array([1.0, np.nan]), 3)
+
+
+def test_the_header_carries_what_print_hosts_show(tmp_path, curved):
+    """RepRap dialect: ;TIME, filament length and mass, layer count in the Cura and PrusaSlicer spellings, equal to
+    what the file itself holds (E read back from the moves, the ;LAYER marks, the summary's estimated time)."""
+    tp, _, _ = curved
+    profile = load_profile("reprap_5axis")
+    program = plan_motion(tp, profile, platform_z=0.0)
+    path = write_gcode(tmp_path / "print.gcode", program)
+    text = path.read_text()
+    head = text[:text.index("G21")]
+    key = lambda pattern: re.search(pattern, head).group(1)  # noqa: E731
+    moves = parse_gcode(path, axes="".join(program.axis_letters))
+    de = np.diff(moves.axes[program.axis_letters[5]])
+    filament = de[program.kind[1:] == PRINT].sum()
+    assert float(key(r"; filament used \[mm\] = ([\d.]+)")) == pytest.approx(filament, abs=0.01)
+    assert float(key(r";Filament used: ([\d.]+)m")) == pytest.approx(filament / 1000, abs=1e-5)
+    grams = filament * np.pi * 0.25 * profile.extrusion.filament_diameter ** 2 * 1.24e-3
+    assert float(key(r"; filament used \[g\] = ([\d.]+)")) == pytest.approx(grams, abs=0.01)
+    n_layers = len(re.findall(r"^;LAYER:", text, flags=re.M))
+    assert int(key(r";LAYER_COUNT:(\d+)")) == n_layers == int(key(r"; total layers count = (\d+)")) > 1
+    t = int(key(r";TIME:(\d+)"))
+    assert t == round(float(key(r"est\. time ([\d.]+) s")))
+    h, m, s = map(int, re.search(r"estimated printing time \(normal mode\) = (\d+)h (\d+)m (\d+)s", head).groups())
+    assert 3600 * h + 60 * m + s == t

@@ -6,7 +6,7 @@ from typing import Iterator
 
 import numpy as np
 
-from neuralslicer.motion.planning import TRAVEL, MachineProgram, program_metrics
+from neuralslicer.motion.planning import TRAVEL, MachineProgram, filament_area, program_metrics
 from neuralslicer.motion.timing import schedule
 from neuralslicer.fileio import atomic_path
 
@@ -178,6 +178,20 @@ def _summary_comment(program: MachineProgram, open_c: str, close_c: str, times: 
     ] + [f"{open_c}{line}{close_c}" for line in _machine_comment(program)]
 
 
+def host_comments(program: MachineProgram, times: tuple | None = None) -> list[str]:
+    """The keys print hosts show before a print (estimated time, filament length and mass, layer count), in the
+    Cura spellings (OctoPrint plugins, Duet Web Control) and the PrusaSlicer ones (PrusaLink, Duet)."""
+    met = program_metrics(program, times)
+    t = int(round(met["estimated_print_time_s"]))
+    mm = met["filament_mm"]
+    grams = mm * filament_area(program.profile) / 1000.0 * program.profile.extrusion.filament_density_g_cm3
+    n_layers = int(np.count_nonzero(np.diff(program.layer)) + 1) if len(program) else 0
+    return [";FLAVOR:RepRap", f";TIME:{t}", f";Filament used: {mm / 1000:.5f}m", f";LAYER_COUNT:{n_layers}",
+            f"; estimated printing time (normal mode) = {t // 3600}h {t // 60 % 60}m {t % 60}s",
+            f"; filament used [mm] = {mm:.2f}", f"; filament used [g] = {grams:.2f}",
+            f"; total layers count = {n_layers}"]
+
+
 def _linuxcnc_body(program: MachineProgram, start: int, stop: int) -> bytes:
     g = program.profile.gcode
     dt = np.maximum(program.time_s[start:stop], MIN_MOVE_S)
@@ -255,7 +269,7 @@ def _reprap_body(program: MachineProgram, start: int, stop: int) -> bytes:
 def _reprap_chunks(program: MachineProgram) -> Iterator[bytes]:
     g = program.profile.gcode
     times = schedule(program.machine, program.time_s, program.profile.feeds)
-    head = ["; " + s for s in _summary_comment(program, "", "", times)]
+    head = ["; " + s for s in _summary_comment(program, "", "", times)] + host_comments(program, times)
     head += ["G21", "G90", "M82"]
     if g.bed_temp_c is not None:
         head += [f"M140 S{g.bed_temp_c:.0f}", f"M190 S{g.bed_temp_c:.0f}"]

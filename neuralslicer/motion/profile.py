@@ -87,6 +87,8 @@ class Extrusion(_Model):
     """Filament and retraction."""
 
     filament_diameter: float = Field(1.75, gt=0)
+    #: filament density for the mass print hosts show (PLA 1.24, PETG 1.27, ABS 1.04 g/cm3).
+    filament_density_g_cm3: float = Field(1.24, gt=0)
     #: multiplier on the volumetric extrusion (flow).
     flow: float = Field(1.0, gt=0)
     retract_mm: float = Field(1.0, ge=0)
