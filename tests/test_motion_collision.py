@@ -11,17 +11,7 @@ from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, planar_stack, square_layer
 
-NOZZLE = Nozzle(cone_half_angle_deg=30.0, cone_length=8.0, holder_radius=15.0, holder_length=30.0)
-
-
-def _inside_head(p, tip, axis, nz: Nozzle, min_height: float = 0.0) -> np.ndarray:
-    """Exact membership of points p (k,3) in the cone + holder at one pose."""
-    d = p - tip
-    h = d @ axis
-    radial = np.linalg.norm(d - h[:, None] * axis, axis=1)
-    cone = (h >= min_height) & (h <= nz.cone_length) & (radial <= h * np.tan(np.radians(nz.cone_half_angle_deg)))
-    holder = (h > nz.cone_length) & (h <= nz.cone_length + nz.holder_length) & (radial <= nz.holder_radius)
-    return cone | holder
+from head_reference import NOZZLE, inside_head
 
 
 def test_planted_collision_is_found():
@@ -35,11 +25,11 @@ def test_planted_collision_is_found():
     # the reported location is material of the tower, inside the head at that waypoint
     assert rep.locations[:, 0].max() <= 2.0 + 1e-9
     for i, loc in zip(rep.indices[:50], rep.locations[:50]):
-        assert _inside_head(loc[None], tp.xyz[i], tp.axis[i], NOZZLE)[0]
+        assert inside_head(loc[None], tp.xyz[i], tp.axis[i], NOZZLE)[0]
     # exact brute force agrees that most of the late layer's on-layer waypoints collide
     on = np.flatnonzero((tp.layer == 20) & (tp.path >= 0))
     material = tp.xyz[(tp.layer < 20) & (tp.path >= 0)]
-    exact = np.array([_inside_head(material, tp.xyz[i], tp.axis[i], NOZZLE).any() for i in on])
+    exact = np.array([inside_head(material, tp.xyz[i], tp.axis[i], NOZZLE).any() for i in on])
     found = np.isin(on, rep.indices)
     assert np.array_equal(found, exact)
 
@@ -69,10 +59,10 @@ def _assert_exact(tips: np.ndarray, axes: np.ndarray, pts: np.ndarray) -> None:
     """head_collisions agrees with a brute-force test of every point in every head (some hit, some not), and
     each reported location lies in its head."""
     hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
-    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    exact = np.array([inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
     assert np.array_equal(hit, exact) and 0 < hit.sum() < len(hit)
     for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
-        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+        assert inside_head(q[None], t, a, NOZZLE, 0.4)[0]
 
 
 def test_head_check_is_exact_on_random_clouds():
@@ -87,7 +77,7 @@ def test_head_check_is_exact_on_random_clouds():
     radial = rng.uniform(0, 1, 20000) ** 0.5 * np.where(h <= 8.0, h * np.tan(np.radians(30.0)), 15.0)
     ang = rng.uniform(0, 2 * np.pi, 20000)
     head_pts = np.c_[radial * np.cos(ang), radial * np.sin(ang), h]
-    assert _inside_head(head_pts, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
+    assert inside_head(head_pts, np.zeros(3), np.array([0, 0, 1.0]), NOZZLE, 0.4).all()
     for (c, r), part in ((cone_ball(NOZZLE, 0.4), h <= 8.0), (holder_ball(NOZZLE), h > 8.0)):
         assert np.all(np.linalg.norm(head_pts[part] - [0, 0, c], axis=1) <= r + 1e-9)
 
@@ -150,7 +140,7 @@ def test_a_travel_through_a_tower_is_found_where_its_ends_are_clear():
         # brute force: some pose on the move arriving at i has that material inside the head
         t = np.linspace(0, 1, 201)[:, None]
         tips = (1 - t) * tp.xyz[i - 1] + t * tp.xyz[i]
-        assert any(_inside_head(loc[None], tip, tp.axis[i], NOZZLE, 0.5)[0] for tip in tips)
+        assert any(inside_head(loc[None], tip, tp.axis[i], NOZZLE, 0.5)[0] for tip in tips)
 
 
 def test_a_colliding_travel_is_lifted_over_the_tower():
@@ -215,10 +205,10 @@ def test_cube_classified_holder_test_is_exact_on_a_dense_cloud():
     axes[:20] = [0.0, 0.0, 1.0]                       # grid points exactly on the holder's bottom face
     tips[:20, 2] = 0.0
     hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
-    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    exact = np.array([inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
     assert np.array_equal(hit, exact) and 20 < hit.sum() < len(hit) - 20
     for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
-        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+        assert inside_head(q[None], t, a, NOZZLE, 0.4)[0]
 
 
 def test_head_lowest_z_is_the_lowest_point_of_the_head():
@@ -271,10 +261,10 @@ def test_holder_anchors_clear_nearby_poses_soundly(monkeypatch):
 
     monkeypatch.setattr(coll, "scan", counting_scan)
     hit, loc = head_collisions(tips, axes, pts, NOZZLE, min_height=0.4)
-    exact = np.array([_inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
+    exact = np.array([inside_head(pts, t, a, NOZZLE, 0.4).any() for t, a in zip(tips, axes)])
     assert np.array_equal(hit, exact) and 30 < hit.sum() < len(hit) - 100
     for t, a, q in zip(tips[hit], axes[hit], loc[hit]):
-        assert _inside_head(q[None], t, a, NOZZLE, 0.4)[0]
+        assert inside_head(q[None], t, a, NOZZLE, 0.4)[0]
     # cone, holder anchors (with a margin), holder one by one: beside the hits, most poses were cleared by an anchor
     holder = [n for n, m in scanned[1:] if m == 0.0]
     assert len(scanned) == 3 and scanned[1][1] == coll.HOLDER_MARGIN

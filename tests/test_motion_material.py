@@ -15,17 +15,7 @@ from neuralslicer.toolpath import toolpaths
 from neuralslicer.toolpath.synthetic import _with_lpd, cap_stack
 from neuralslicer.toolpath.types import Toolpaths
 
-NOZZLE = Nozzle(cone_half_angle_deg=30.0, cone_length=8.0, holder_radius=15.0, holder_length=30.0)
-
-
-def _in_head(pts: np.ndarray, tip: np.ndarray, axis: np.ndarray, nz: Nozzle, min_height: float) -> np.ndarray:
-    """Membership of points (k, 3) in the head at one pose, written out from the head's definition."""
-    d = pts - tip
-    h = d @ axis
-    radial = np.linalg.norm(d - h[:, None] * axis, axis=1)
-    cone = (h >= min_height) & (h <= nz.cone_length) & (radial <= h * np.tan(np.radians(nz.cone_half_angle_deg)))
-    holder = (h > nz.cone_length) & (h <= nz.cone_length + nz.holder_length) & (radial <= nz.holder_radius)
-    return cone | holder
+from head_reference import NOZZLE, inside_head
 
 
 def brute_force(tp: Toolpaths, nz: Nozzle, platform_z: float, min_height: float, spacing: float = 2.0,
@@ -41,7 +31,7 @@ def brute_force(tp: Toolpaths, nz: Nozzle, platform_z: float, min_height: float,
         seen = laid_at < i
         if earlier_layers_only:
             seen &= layer_of < tp.layer[i]
-        return bool(_in_head(beads[seen], tip, axis, nz, min_height).any())
+        return bool(inside_head(beads[seen], tip, axis, nz, min_height).any())
 
     found: dict[int, int] = {}
     clear = platform_clearance(tp.xyz, tp.axis, nz, platform_z)
@@ -95,7 +85,7 @@ def test_the_print_structure_finds_the_hits_of_a_brute_force_check(seed):
     on = np.flatnonzero(tp.path >= 0)
     for i, q, kind in zip(report.indices, report.locations, report.kind):
         if kind == PART:
-            assert _in_head(q[None], tp.xyz[i], tp.axis[i], NOZZLE, min_height)[0]
+            assert inside_head(q[None], tp.xyz[i], tp.axis[i], NOZZLE, min_height)[0]
             tops, bottoms = tp.xyz[on], tp.xyz[on] - tp.thickness[on, None] * tp.axis[on]
             laid = on[np.all(np.isclose(tops, q), axis=1) | np.all(np.isclose(bottoms, q), axis=1)]
             assert len(laid) and laid.min() < i
@@ -140,7 +130,7 @@ def test_the_bead_height_counts():
     tp = Toolpaths(layer=np.array([0, 1]), path=np.array([0, 1]), xyz=np.array([[3.0, 0.0, 5.0], tip]),
                    axis=np.array([[1.0, 0.0, 0.0], axis]), thickness=np.array([0.9, 0.5]), width=np.full(2, 0.5),
                    extrude=np.array([False, False]))
-    assert not _in_head(tp.xyz[:1], tip, axis, NOZZLE, 0.5).any()
+    assert not inside_head(tp.xyz[:1], tip, axis, NOZZLE, 0.5).any()
     report = check_collisions(tp, NOZZLE, platform_z=-50.0, travel_spacing=0.0)
     assert list(report.indices) == [1] and np.allclose(report.locations[0], [2.1, 0.0, 5.0])
 
