@@ -165,8 +165,8 @@ def _machine_comment(program: MachineProgram) -> list[str]:
             f"machine: program B {b_lo:.2f}..{b_hi:.2f} deg, C {c_lo:.2f}..{c_hi:.2f} deg"]
 
 
-def _summary_comment(program: MachineProgram, open_c: str, close_c: str, times: tuple | None = None) -> list[str]:
-    met = program_metrics(program, times)
+def _summary_comment(program: MachineProgram, met: dict, open_c: str, close_c: str) -> list[str]:
+    """What the program is and assumes, with its totals ``met`` (``program_metrics``)."""
     lx, ly, lz, lb, lc, le = program.axis_letters
     return [
         f"{open_c}Neural Slicer multi-axis program, profile {program.profile.name}{close_c}",
@@ -178,10 +178,10 @@ def _summary_comment(program: MachineProgram, open_c: str, close_c: str, times: 
     ] + [f"{open_c}{line}{close_c}" for line in _machine_comment(program)]
 
 
-def host_comments(program: MachineProgram, times: tuple | None = None) -> list[str]:
-    """The keys print hosts show before a print (estimated time, filament length and mass, layer count), in the
-    Cura spellings (OctoPrint plugins, Duet Web Control) and the PrusaSlicer ones (PrusaLink, Duet)."""
-    met = program_metrics(program, times)
+def host_comments(program: MachineProgram, met: dict) -> list[str]:
+    """The keys print hosts show before a print (estimated time, filament length and mass, layer count; ``met``: the
+    program's totals), in the Cura spellings (OctoPrint plugins, Duet Web Control) and the PrusaSlicer ones
+    (PrusaLink, Duet)."""
     t = int(round(met["estimated_print_time_s"]))
     mm = met["filament_mm"]
     grams = mm * filament_area(program.profile) / 1000.0 * program.profile.extrusion.filament_density_g_cm3
@@ -219,7 +219,7 @@ def _linuxcnc_chunks(program: MachineProgram) -> Iterator[bytes]:
     le = program.axis_letters[5]
     n = len(program)
     times = schedule(program.machine, program.time_s, program.profile.feeds)
-    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, "", "", times)]
+    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, program_metrics(program, times), "", "")]
     head += ["G21 G90 G17 G40 G49 G80 G94", "G64 P0.01", f"G92 {le}0"] + list(g.header)
     yield _text(head)
     yield _linuxcnc_body(program, 0, min(1, n))
@@ -269,7 +269,8 @@ def _reprap_body(program: MachineProgram, start: int, stop: int) -> bytes:
 def _reprap_chunks(program: MachineProgram) -> Iterator[bytes]:
     g = program.profile.gcode
     times = schedule(program.machine, program.time_s, program.profile.feeds)
-    head = ["; " + s for s in _summary_comment(program, "", "", times)] + host_comments(program, times)
+    met = program_metrics(program, times)
+    head = ["; " + s for s in _summary_comment(program, met, "", "")] + host_comments(program, met)
     head += ["G21", "G90", "M82"]
     if g.bed_temp_c is not None:
         head += [f"M140 S{g.bed_temp_c:.0f}", f"M190 S{g.bed_temp_c:.0f}"]
