@@ -24,9 +24,8 @@ from tasks.common import run_step
 from tasks.export import export_task
 from tasks.fea import fea_task, printed_fea_task, stress_samples_task, verify_task
 from tasks.provenance import record_provenance
-from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, s3_field_task, s3_oneshot_field_task,
-                         samples_task,
-                         solid_task, toolpaths_task)
+from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, s3_field_task,
+                         s3_oneshot_field_task, samples_task, solid_task, toolpaths_task)
 
 
 @dataclass

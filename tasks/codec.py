@@ -201,6 +201,7 @@ def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage:
 def read_strength_round(label: str, printing: ArtifactRef, printed: ArtifactRef) -> StrengthRound:
     """One strength round: its print's collisions, the FEA of that print (strain figures) and how tau_max turned."""
     from neuralslicer.outputs import TURN_ARRAYS, StrengthRound
+
     arrays, attrs = read(printed, [f"turn/{k}" for k in TURN_ARRAYS])
     return StrengthRound(label, int(attrs_of(printing)["metrics"].get("n_collisions", 0)), attrs,
                          {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items()})

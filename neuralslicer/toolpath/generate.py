@@ -114,8 +114,8 @@ def distance_band(cfg: ToolpathConfig) -> float:
 def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathConfig,
                  surface: TriangleSet | None = None, stress: _StressSetup | None = None) -> list[_Path]:
     """Shells and infill of one (refined) patch, unordered; ``surface``: its triangles before refinement;
-    ``stress``: its stress scalar, for stress-following infill (the regular zig-zag where the stress is not
-    significant)."""
+    ``stress``: its stress scalar, for stress-following infill, with the regular zig-zag where ``patch.values`` (the
+    stress region, :func:`_stress_setups`) is below 0."""
     w = cfg.line_width
     d = boundary_distance(patch, upper=distance_band(cfg), surface=surface)
     finite = np.isfinite(d)
@@ -145,7 +145,7 @@ def _patch_paths(patch: Patch, patch_id: int, layer_index: int, cfg: ToolpathCon
     if stress is None:
         return paths + _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index)
     paths += _stress_lines(stress, d0, cfg, patch_id, layer_index, surface)
-    if (stress.potential.region < 0).any():
+    if patch.values is not None:
         # the regular pattern where the in-layer stress is negligible (the region refined with the patch)
         paths += _zigzag_lines(patch, d, d0, cfg, patch_id, layer_index, -patch.values)
     return paths
@@ -500,7 +500,8 @@ def _layer_paths(patches: list[Patch], li: int, cfg: ToolpathConfig, start: Floa
         filled.append(TriangleSet(patch.vertices, patch.faces))
         lines, region = stress[k] if stress is not None else (None, None)
         if lines is not None and (lines.potential.region < 0).any():
-            # the zig-zag's region, carried through the refinement (linear on the layer's triangles)
+            # part of the patch is left to the zig-zag: its region, carried through the refinement (linear on the
+            # layer's triangles), tells _patch_paths where
             patch = replace(patch, values=region)
         fine = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
         all_paths += _patch_paths(fine, len(filled) - 1, li, cfg, filled[-1], lines)
