@@ -36,6 +36,13 @@ FIELDS = ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")
 CURVE = 0.004
 
 
+def shown(path: Path) -> str:
+    """A path as the results record it: relative to the repository, else its last two parts (no machine path)."""
+    path, repo = path.resolve(), ROOT.parent
+    return (path.relative_to(repo).as_posix() if path.is_relative_to(repo)
+            else f"<outside the repository>/{path.parent.name}/{path.name}")
+
+
 def curved_bunny_layers() -> tuple[list, float]:
     """Layers of the shipped bunny under G = z + CURVE r^2 by the layer step, and the platform height."""
     from neuralslicer.cage import CageConfig, make_cage
@@ -135,7 +142,8 @@ def main() -> None:
     else:
         slope = None
     RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps({"print": str(args.store or f"bunny_closed_low_res.stl, G = z + {CURVE} r^2"),
+    default_print = f"bunny_closed_low_res.stl, G = z + {CURVE} r^2"
+    RESULTS.write_text(json.dumps({"print": shown(args.store) if args.store else default_print,
                                    "cpus": os.cpu_count(), "growth_exponent": slope, "rows": rows}, indent=2))
 
 

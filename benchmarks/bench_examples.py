@@ -33,6 +33,12 @@ DATA = REPO / "neuralslicer" / "data"
 EXAMPLES = REPO / "neuralslicer" / "examples"
 RESULTS = ROOT / "results" / "bench_examples.json"
 
+
+def shown(path: Path | str) -> str:
+    """A path as the results record it: relative to the repository, else only its name (no machine path)."""
+    path = Path(path).resolve()
+    return path.relative_to(REPO).as_posix() if path.is_relative_to(REPO) else f"<outside the repository>/{path.name}"
+
 #: name -> (model, extra CLI arguments); the .tet models are y-up
 MODELS: dict[str, tuple[Path, list[str]]] = {
     "bracket": (EXAMPLES / "bracket" / "model.yaml", []),
@@ -126,8 +132,7 @@ def slice_one(name: str, tmp: Path) -> dict:
     row = summary(out)
     row.update(wall_s=wall, load_avg_1min_at_start=load, load_avg_1min_at_end=os.getloadavg()[0],
                peak_memory_gb=peak[0] / 2**30, command=" ".join(
-                   ["neuralslicer slice", str(model.relative_to(REPO.parent) if model.is_relative_to(REPO.parent)
-                                               else model), *extra]))
+                   ["neuralslicer slice", shown(model), *extra]))
     return row
 
 
@@ -154,7 +159,7 @@ def main(argv: list[str]) -> None:
     if argv[:1] == ["--collect"]:
         for item in argv[1:]:
             name, folder = item.split("=", 1)
-            results["models"][name] = {**summary(Path(folder)), "collected_from": folder}
+            results["models"][name] = {**summary(Path(folder)), "collected_from": shown(folder)}
     else:
         for name in (list(PARTS) if argv == ["--parts"] else argv) or list(MODELS):
             with tempfile.TemporaryDirectory() as tmp:

@@ -118,7 +118,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--large", action="store_true", help="also run 1M voxels")
     ap.add_argument("--cases", default=None, help="comma-separated subset of " + ",".join(CASES))
-    ap.add_argument("--out", default="/tmp/bench_fea", help="folder for the .vtu/.png outputs")
+    ap.add_argument("--out", default="runs/bench_fea", help="folder for the .vtu/.png outputs")
     ap.add_argument("--json", default=str(RESULTS / "bench_fea.json"))
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()

@@ -11,7 +11,7 @@ SF + PO + CA and for SF + PO + CA + GC, the search for L_GC's pairs near collisi
 today's former default (SF + PO, retries with smoother fields and CA, then the planar blend); each
 row gives the nozzle collisions of the first print and of the printed program, the overhang, SR
 where it applies, the optimisation steps and the wall time of the whole command. Figures go to
-benchmarks/results/bench_head_collision.json; the README and docs/neural.md quote them.
+benchmarks/results/bench_head_collision.json; docs/results.md and docs/neural.md quote them.
 """
 from __future__ import annotations
 

@@ -200,6 +200,7 @@ def cached_ring_inputs(cache: Path | None) -> dict[str, np.ndarray]:
         return dict(np.load(cache))
     d = ring_inputs()
     if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
         np.savez(cache, **d)
     return d
 

@@ -80,7 +80,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("store", type=Path)
     ap.add_argument("--model", default=None)
-    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_refine"))
+    ap.add_argument("--work", type=Path, default=Path("runs/bench_refine"))
     ap.add_argument("--steps", type=int, default=None, help="optim.refine.steps (default: the config's)")
     ap.add_argument("--lr", type=float, default=None, help="optim.refine.lr (default: the config's)")
     ap.add_argument("--machine", default="table_bc_linuxcnc")

@@ -6,7 +6,7 @@ For each run: wall time of `neuralslicer slice ring.tet --up y` (Prefect start-u
 optimisation steps, nozzle collisions of the first print, whether a retry or the planar blend was
 needed, the overhang area fraction against planar layers, and each step's wall time. Writes
 benchmarks/results/bench_ring_default.json and prints a table. Run it on a quiet machine: it is the
-figure behind the README's ring row.
+figure behind the ring rows of docs/results.md.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ area fraction of B realised by each field, time and steps.
 
     python benchmarks/bench_s3_ring.py                       # S3 and NS (sf, po; default configs)
     python benchmarks/bench_s3_ring.py --skip-ns             # S3 only
-    python benchmarks/bench_s3_ring.py --cache /tmp/ring.npz # reuse the ring's samples and cage
+    python benchmarks/bench_s3_ring.py --cache runs/ring.npz  # reuse the ring's samples and cage
     python benchmarks/bench_s3_ring.py --threads 1           # one torch thread for both (a busy machine)
 
 Rows: planar layers (G = z), S3, NS with its default config (which stops once the overhang is at most

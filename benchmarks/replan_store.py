@@ -2,7 +2,7 @@
 
 Usage: ``python benchmarks/replan_store.py OUT/store.zarr [--tilt DEG] [--machine NAME]``. Reads the model and
 the layers of the (first) stored run, plans the print again and prints the collision figures and the stage
-timings as JSON: how the numbers in the README's "Other models" table for lattice and topopt were made.
+timings as JSON: how the lattice and topopt figures of docs/results.md ("Slices of real models") were made.
 """
 from __future__ import annotations
 

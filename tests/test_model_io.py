@@ -135,15 +135,24 @@ def test_the_sample_models_ship_with_the_package_and_an_unknown_name_is_a_clear_
         sample("missing.tet")
 
 
-def test_no_code_or_doc_names_a_machine_path_or_the_shared_data_folder() -> None:
-    """Code, tests, benchmarks, docs and deployments resolve data relative to the package (run records aside)."""
+def test_no_tracked_file_names_a_machine_path_or_the_shared_data_folder() -> None:
+    """Every tracked text file (code, tests, benchmarks and their results, docs, the studies' run records,
+    deployments) names paths relative to the repository or as placeholders: no /work, /home or /tmp path of the
+    machine it was written on, and no shared data folder outside the package."""
     import subprocess
 
     repo = Path(__file__).resolve().parents[1]
-    patterns = ("/" + "work/", "shared" + "/data")   # split, so that this file does not match itself
-    files = subprocess.run(["git", "ls-files", "*.py", "*.md", "*.yaml", "*.sh", "*.toml", "Makefile"], cwd=repo,
-                           capture_output=True, text=True, check=True).stdout.split()
-    bad = [f"{f}:{i}" for f in files if not f.startswith("docs/studies/") and (repo / f).is_file()
-           for i, line in enumerate((repo / f).read_text(errors="replace").splitlines(), 1)
-           if any(p in line for p in patterns)]
+    # split, so that this file does not match itself
+    patterns = ("/" + "work/", "/" + "home/", "/" + "tmp/", "shared" + "/data")
+    files = subprocess.run(["git", "ls-files", "-z"], cwd=repo, capture_output=True, check=True).stdout
+    bad = []
+    for name in files.decode().split("\0"):
+        path = repo / name
+        if not name or not path.is_file():
+            continue
+        data = path.read_bytes()
+        if b"\0" in data[:8192]:          # binary (figures, meshes, archives): no text paths to check
+            continue
+        bad += [f"{name}:{i}" for i, line in enumerate(data.decode(errors="replace").splitlines(), 1)
+                if any(p in line for p in patterns)]
     assert not bad, bad
