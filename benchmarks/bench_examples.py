@@ -68,9 +68,9 @@ def summary(out: Path) -> dict:
     row = {
         "steps": m.get("field.steps"), "stop": m.get("field.stop"), "layers": m.get("n_layers"),
         "waypoints": m.get("n_waypoints"),
-        "first_print_collisions": prints[0]["collisions"] if prints else m.get("collisions"),
-        "printed_collisions": m.get("collisions"), "prints": prints or [{"stage": "optimised",
-                                                                          "collisions": m.get("collisions"),
+        "first_print_collisions": prints[0]["collisions"] if prints else m.get("n_collisions"),
+        "printed_collisions": m.get("n_collisions"), "prints": prints or [{"stage": "optimised",
+                                                                          "collisions": m.get("n_collisions"),
                                                                           "overhang_area_fraction": m.get("sf.overhang_area_fraction")}],
         "blend_planar": m.get("field.blend_planar"), "overhang": m.get("sf.overhang_area_fraction"),
         "overhang_planar": m.get("sf.overhang_area_fraction_planar"),

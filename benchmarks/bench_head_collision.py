@@ -124,11 +124,11 @@ def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
     from tasks.codec import read_collision_map
 
     st = ArtifactStore(store)
-    for group in sorted(store.glob("*/toolpaths/*")):
+    for group in sorted(store.glob("*/motion/*")):
         path = str(group.relative_to(store))
         if st.exists(path):
             m = st.attrs(path)["metrics"]
-            if m["n_collisions"] == metrics["collisions"] and m["n_waypoints"] == metrics["n_waypoints"]:
+            if m["n_collisions"] == metrics["n_collisions"] and m["n_waypoints"] == metrics["n_waypoints"]:
                 return read_collision_map(ArtifactRef(str(store), path, ""))
     raise RuntimeError(f"{store}: no print matches the metrics")
 
@@ -142,9 +142,9 @@ def _slice(model: list[str], variant: str, strength: bool, extra: list[str], map
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=REPO)
         wall = time.perf_counter() - t0
         m = json.loads(Path(tmp, "out", "metrics.json").read_text())
-        maps[f"{variant}: {m['collisions']:,} collisions"] = _printed_map(Path(tmp, "out", "store.zarr"), m)
-    first = m.get("collision_resolution.0.collisions", m.get("collisions"))
-    return {"wall_s": wall, "first_print_collisions": first, "collisions": m.get("collisions"),
+        maps[f"{variant}: {m['n_collisions']:,} collisions"] = _printed_map(Path(tmp, "out", "store.zarr"), m)
+    first = m.get("collision_resolution.0.collisions", m.get("n_collisions"))
+    return {"wall_s": wall, "first_print_collisions": first, "collisions": m.get("n_collisions"),
             "overhang": m.get("sf.overhang_area_fraction"), "overhang_planar": m.get("sf.overhang_area_fraction_planar"),
             "sr": m.get("sr.satisfied_fraction"), "sr_planar": m.get("sr.satisfied_fraction_planar"),
             "steps": m.get("field.steps"), "blend_planar": m.get("field.blend_planar"),

@@ -96,7 +96,7 @@ def main() -> None:
     field = ref(store, root, model, "field")
     field_attrs = store.attrs(field.path)
     G0 = store.read(field.path, ["G"])[0]["G"]
-    tp_attrs = store.attrs(ref(store, root, model, "toolpaths").path)["toolpaths"] if store.children(
+    tp_attrs = store.attrs(ref(store, root, model, "toolpaths").path) if store.children(
         f"{model}/toolpaths") else {"config": {}, "t_max": 1.0}
     tp_cfg, t_max = ToolpathConfig(**tp_attrs["config"]), float(tp_attrs.get("t_max", 1.0))
     config = NeuralConfig.model_validate(field_attrs["config"])

@@ -41,8 +41,8 @@ def one_run(tmp: Path) -> dict:
     stages = sorted({int(k.split(".")[1]) for k in m if k.startswith("collision_resolution.")})
     return {
         "wall_s": wall, "steps": m["field.steps"], "layers": m["n_layers"], "waypoints": m["n_waypoints"],
-        "first_print_collisions": m["collision_resolution.0.collisions"] if stages else m["collisions"],
-        "printed_collisions": m["collisions"], "fields_printed": max(1, len(stages)),
+        "first_print_collisions": m["collision_resolution.0.collisions"] if stages else m["n_collisions"],
+        "printed_collisions": m["n_collisions"], "fields_printed": max(1, len(stages)),
         "blend_planar": m["field.blend_planar"], "overhang": m["sf.overhang_area_fraction"],
         "overhang_planar": m["sf.overhang_area_fraction_planar"],
         "steps_s": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("wall_s.")},
@@ -64,9 +64,9 @@ def _prints(store: Path) -> list[dict]:
 
     st = ArtifactStore(store)
     rows = []
-    made = sorted(st.children("ring/toolpaths"), key=lambda d: (store / "ring" / "toolpaths" / d).stat().st_mtime)
+    made = sorted(st.children("ring/motion"), key=lambda d: (store / "ring" / "motion" / d).stat().st_mtime)
     for d in made:
-        a = st.attrs(f"ring/toolpaths/{d}")
+        a = st.attrs(f"ring/motion/{d}")
         pm = a["metrics"]
         rows.append({"made_at_s": a.get("wall_s"), **{k: pm.get(k) for k in (
             "n_collisions", "n_part_collisions", "n_platform_collisions", "n_travel_collisions", "n_waypoints",

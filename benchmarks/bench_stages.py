@@ -2,10 +2,11 @@
 
     .venv/bin/python benchmarks/bench_stages.py [ring|bracket ...]   (default: ring bracket)
 
-Part 1 runs the core chain in-process (no Prefect, no store), stage by stage, sampling the process's resident
-memory every 20 ms: model (implicit solid), samples, cage, FEA and stress samples (with an fea block),
-optimisation (with its step count and time per step), layers, toolpaths, collision check, travel lift and tilt,
-motion planning, G-code, report figures. Part 2 runs the default CLI command in a fresh store and again on the
+Part 1 runs the core pipeline in-process (``neuralslicer.pipeline.run_chain`` on in-process steps: no Prefect, no
+store), step by step, sampling the process's resident memory every 20 ms: model (implicit solid), solid, samples,
+cage, FEA and stress samples (with an fea block), optimisation (with its step count and time per step; every field
+the collision policy asks for), layers, toolpaths, motion (collision check, travel lift and tilt, motion planning),
+G-code, report figures. Part 2 runs the default CLI command in a fresh store and again on the
 same store (the cached rerun): whole wall time, every task run's wall time (Prefect's round trips included, from
 run.json) and the time outside them (imports, Prefect start-up, the report artifact). Limits are lower bounds measured here: G-code at the disk's write speed for its bytes, the collision
 check at one nearest-neighbour query per waypoint, an optimisation step at one forward and backward pass of the
@@ -85,82 +86,63 @@ def disk_write_mb_s(folder: Path, mb: int = 256) -> float:
     return mb / s
 
 
+LABELS = {"model": "model (implicit solid)", "samples": "samples B", "cage": "cage (fTetWild)", "fea": "FEA",
+          "stress_samples": "stress samples T", "field": "optimisation", "layers": "layers",
+          "toolpaths": "toolpaths (shells, infill, order, thickness)", "motion": "motion (check, lifts, tilts, IK)",
+          "program": "G-code"}
+
+
 def core_stages(name: str, tmp: Path) -> tuple[list[dict], dict]:
-    """Every stage of one slice in-process; the rows and a few counts."""
+    """Every stage of one slice in-process (the core pipeline, ``run_chain`` on in-process steps, each step in a
+    Stage); the rows and a few counts."""
     from scipy.spatial import cKDTree
 
-    from neuralslicer.cage import make_cage
     from neuralslicer.config import SliceConfig
-    from neuralslicer.fea import run_fea, stress_samples
-    from neuralslicer.gcode import write_gcode
-    from neuralslicer.layers import slice_layers
-    from neuralslicer.model import implicit_solid
+    from neuralslicer.in_process import InProcessSteps
     from neuralslicer.model.spec import load_spec, spec_for_file
-    from neuralslicer.motion import load_profile, plan_print
-    from neuralslicer.neural.optimise import optimise_for_solid
+    from neuralslicer.pipeline import run_chain
     from neuralslicer.report import plot_layers_3d, plot_thickness_map
-    from neuralslicer.samples import surface_samples
-    from neuralslicer.scalar_field import ScalarField
 
     args, over = MODELS[name]
     spec = spec_for_file(args[1], "y") if name == "ring" else load_spec(args[1])
-    cfg = SliceConfig()
+    cfg = SliceConfig.model_validate({"neural": {"optim": {"max_steps": over["max_steps"]}}} if over else {})
     rows: list[dict] = []
-    with Stage(rows, "model (implicit solid)"):
-        solid = implicit_solid(spec)
-    with Stage(rows, "samples B"):
-        samples = surface_samples(solid, cfg.samples.n_samples, k=cfg.samples.k, seed=cfg.samples.seed)
-    with Stage(rows, "cage (fTetWild)") as st:
-        cage = make_cage(solid, samples.points, cfg.cage)
-        st.info = {"cage_tets": int(len(cage.tets))}
-    stress = None
-    objectives = cfg.objectives_for(spec)
-    if spec.fea is not None:
-        with Stage(rows, "FEA + stress samples T") as st:
-            fea = run_fea(solid, spec.fea)
-            stress = stress_samples(fea, spec.fea.top_fraction)
-            st.info = {"voxels": int(len(fea.grid.centres))}
-    machine = load_profile(cfg.machine)
-    neural = cfg.neural.with_head(machine.nozzle, cfg.toolpath.line_width)
-    if "max_steps" in over:
-        neural = neural.model_copy(update={"optim": neural.optim.model_copy(update={"max_steps": over["max_steps"]})})
-    with Stage(rows, "optimisation") as st:
-        result = optimise_for_solid(solid, cage.vertices, cage.tets, samples, stress, objectives, neural)
-        st.info = {"steps": int(result.steps)}
-    opt = rows[-1]
-    opt["per_step_s"] = opt["wall_s"] / max(opt["steps"], 1)
-    opt["limit_s"] = opt["steps"] * network_pass_s(cage, neural)
-    field = ScalarField(cage.vertices, cage.tets, result.G)
-    with Stage(rows, "layers") as st:
-        layers = slice_layers(solid, field, cfg.layers)
-        st.info = {"layers": len(layers.meshes)}
-    with Stage(rows, "toolpaths + collisions + motion") as st:
-        tp, program, metrics, _ = plan_print(layers.meshes, platform_z=solid.platform_z, solid_H=solid.H,
-                                             toolpath_cfg=cfg.toolpath, profile=machine, t_max=cfg.layers.t_max)
-        st.info = {"waypoints": len(tp), "moves": len(program), "collisions": metrics["n_collisions"]}
-    whole = rows.pop()
+
+    class StagedSteps(InProcessSteps):
+        """In-process steps, each call measured as one Stage row."""
+
+        def _timed(self, step, make):  # noqa: ANN001, ANN202
+            with Stage(rows, LABELS.get(step, step)):
+                return super()._timed(step, make)
+
+    steps = StagedSteps(cfg.s3, cfg.s3_oneshot)
+    chain = run_chain(steps, spec, cfg)
+    cage, motion = chain.cage, chain.printed.motion
+    tp, metrics = motion.toolpaths, motion.metrics
+    opt = next(r for r in rows if r["stage"] == "optimisation")
+    n_steps = int(chain.printed.field[1].get("steps", 0))
+    opt.update(steps=n_steps, per_step_s=opt["wall_s"] / max(n_steps, 1),
+               limit_s=n_steps * network_pass_s(cage, cfg.neural.with_head(motion.program.profile.nozzle,
+                                                                          cfg.toolpath.line_width)))
     material = cKDTree(tp.xyz)
     t = time.perf_counter()
     material.query(tp.xyz + 1.0, k=1)
     nn_s = time.perf_counter() - t
-    timings = metrics["timings_s"]
-    for key, label, limit in (("toolpaths", "toolpaths (shells, infill, order, thickness)", None),
-                              ("collisions", "collision check", nn_s), ("tilt", "travel lift + tilt + reach", None),
-                              ("motion", "motion planning (IK, feeds, time estimate)", None)):
-        rows.append({"stage": label, "wall_s": float(timings[key]), "peak_rss_mb": whole["peak_rss_mb"],
-                     "added_rss_mb": whole["added_rss_mb"], "limit_s": limit,
-                     **({"waypoints": whole["waypoints"]} if key == "toolpaths" else {})})
+    whole = next(r for r in rows if r["stage"] == LABELS["motion"])
+    for key, label, limit in (("collisions", "  of which: collision check", nn_s),
+                              ("tilt", "  of which: travel lift + tilt + reach", None),
+                              ("motion", "  of which: motion planning (IK, feeds, time estimate)", None)):
+        rows.append({"stage": label, "wall_s": float(metrics["timings_s"][key]), "peak_rss_mb": whole["peak_rss_mb"],
+                     "added_rss_mb": whole["added_rss_mb"], "limit_s": limit})
     speed = disk_write_mb_s(tmp)
-    with Stage(rows, "G-code") as st:
-        path = write_gcode(tmp / "print.gcode", program)
-        size = path.stat().st_size
-        st.info = {"bytes": size}
-    rows[-1]["limit_s"] = size / 2**20 / speed
+    gcode = next(r for r in rows if r["stage"] == LABELS["program"])
+    gcode.update(bytes=len(chain.program), limit_s=len(chain.program) / 2**20 / speed)
     with Stage(rows, "figures (layer preview, bead thickness)"):
-        plot_layers_3d(tmp / "layers.png", layers.meshes)
-        plot_thickness_map(tmp / "beads.png", tp.xyz, tp.thickness, tp.extrude, machine.nozzle.bead_thickness_mm)
-    counts = {"cage_tets": int(len(cage.tets)), "steps": int(result.steps), "layers": len(layers.meshes),
-              "waypoints": len(tp), "disk_write_mb_s": speed, "collisions": int(metrics["n_collisions"])}
+        plot_layers_3d(tmp / "layers.png", chain.printed.layers.meshes)
+        plot_thickness_map(tmp / "beads.png", tp.xyz, tp.thickness, tp.extrude, motion.program.profile.nozzle.bead_thickness_mm)
+    counts = {"cage_tets": int(len(cage.tets)), "steps": n_steps, "layers": len(chain.printed.layers.meshes),
+              "waypoints": len(tp), "disk_write_mb_s": speed, "collisions": int(metrics["n_collisions"]),
+              "attempts": max(len(chain.attempts), 1)}
     return rows, counts
 
 

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
+from cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
 from cli.studies import add_compare_parser, add_study_parser
 from flows.local_api import LocalApi, api_serving, start_local_api
 from flows.settings import cache_settings, with_api_retry
@@ -24,21 +24,20 @@ def cmd_slice(args: argparse.Namespace) -> int:
         raise InputError(model, "no such file")
     api = start_local_api()  # boots in the background while the model is read and checked
     from neuralslicer.model.solid import implicit_solid
-    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.model.spec import load_model
     from neuralslicer.preflight import preflight
 
-    spec = spec_for_file(model, args.up or "z", args.units or "mm")
-    update = {k: v for k, v in (("up", args.up), ("units", args.units)) if v is not None and getattr(spec, k) != v}
-    if update:
-        spec = spec.model_copy(update=update)
+    spec = load_model(model, args.up, args.units)
     config = build_config(args)
     if args.init not in (None, "height", "heat") and not Path(args.init).is_file():
         raise InputError(args.init, "no such file (--init takes height, heat or a file of field values)")
     out_dir = Path(args.out).resolve()
-    store = str(args.store or out_dir / "store.zarr")
+    from storage import default_store
+
+    store = str(args.store or default_store(out_dir))
     solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
     needs_fea = config.needs_fea(spec)
-    preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea)
+    preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea, names=cli_names())
     return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args, api))
 
 
@@ -84,14 +83,12 @@ def cmd_fea(args: argparse.Namespace) -> int:
     """Isotropic voxel FEA of a model spec alone: DIR/fea.vtu, DIR/metrics.json, a stress picture."""
     from neuralslicer.fea import run_fea, write_fea_outputs
     from neuralslicer.model.solid import implicit_solid
-    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.model.spec import load_model
 
     path = Path(args.spec)
     if not path.exists():
         raise InputError(path, "no such file")
-    spec = spec_for_file(path, args.up or "z")
-    if args.up is not None:
-        spec = spec.model_copy(update={"up": args.up})
+    spec = load_model(path, args.up)
     if spec.fea is None:
         raise InputError(path, "the spec has no 'fea' block (material, supports, loads)")
     fea = spec.fea if args.voxels is None else spec.fea.model_copy(update={"voxels": args.voxels})

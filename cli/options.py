@@ -122,6 +122,14 @@ def build_config(options: argparse.Namespace) -> SliceConfig:
         raise InputError(where, exc.message) from None
 
 
+def cli_names():  # noqa: ANN201 - neuralslicer.preflight.Names, imported when a command runs (not for --help)
+    """How the preflight's messages name the settings on the command line: by their flags."""
+    from neuralslicer.preflight import Names
+
+    return Names(out="--out", store="--store", units="--units", layer_height="--layer-height", machine="--machine",
+                 force="--force", config="--config")
+
+
 def run_in_out_dir(out_dir: Path, job: Callable[[], int]) -> int:
     """Run a job that writes into out_dir; on bad input remove out_dir again if this run created it."""
     existed = out_dir.exists()

@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from cli.options import ArgumentParser, add_slicing_options, build_config, run_in_out_dir
+from cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
 from flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
 from neuralslicer.neural.device import limit_threads
@@ -25,12 +25,12 @@ def parse_counts(text: str) -> list[int]:
 def check_model(model: Path, args: argparse.Namespace, config: Any, out_dir: Path, store: str) -> None:
     """The slice command's checks before any work (outputs, store, scale, layer count, machine, FEA) for one model."""
     from neuralslicer.model.solid import implicit_solid
-    from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.model.spec import load_model
     from neuralslicer.preflight import preflight
 
-    spec = spec_for_file(model, args.up or "z", getattr(args, "units", None) or "mm")
+    spec = load_model(model, args.up, getattr(args, "units", None))
     solid = implicit_solid(spec)
-    preflight(spec, solid, config, out_dir, store, force=getattr(args, "force", False),
+    preflight(spec, solid, config, out_dir, store, force=getattr(args, "force", False), names=cli_names(),
               needs_fea=config.needs_fea(spec))
 
 
@@ -50,7 +50,9 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.study == "initial-guess" and args.user_field is not None and not Path(args.user_field).is_file():
         raise InputError(args.user_field, "no such file (--user-field takes an .npz with points and values)")
 
-    store_path = args.store or str(out_dir / "store.zarr")
+    from storage import default_store
+
+    store_path = args.store or default_store(out_dir)
     for m in models:
         check_model(Path(m), args, config, out_dir, store_path)
 

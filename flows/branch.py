@@ -13,7 +13,7 @@ from prefect import task
 from prefect.cache_policies import NONE
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError, NeuralSlicerError
-from neuralslicer.model.spec import ModelSpec, spec_for_file
+from neuralslicer.model.spec import ModelSpec, load_model
 from pydantic import BaseModel, ConfigDict, Field
 
 from storage import ArtifactStore, write_json_atomic
@@ -39,12 +39,7 @@ def load_branch_spec(model: str, up: str | None) -> ModelSpec:
     path = Path(model)
     if not path.exists():
         raise InputError(model, "no such file")
-    spec = spec_for_file(path, up or "z")
-    if up is not None and spec.up != up:
-        source = spec.source
-        spec = spec.model_copy(update={"up": up})
-        spec.source = source
-    return spec
+    return load_model(path, up)
 
 
 def make_user_field(bounds: np.ndarray, path: str | Path, n: int = 9, tilt: float = 0.5) -> Path:

@@ -16,7 +16,7 @@ from flows.branch import Branch, load_branch_spec, make_user_field, study_branch
 from flows.study_report import write_study_outputs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
-from storage import ArtifactStore
+from storage import ArtifactStore, default_store
 
 INIT_KINDS = ("height", "heat", "user")
 
@@ -89,7 +89,7 @@ def run_study(kind: str, title: str, branches: list[Branch], options: StudyOptio
 
 def _store(options: StudyOptions) -> str:
     """The study's store (created), default DIR/store.zarr."""
-    return ArtifactStore(options.store or str(Path(options.out_dir) / "store.zarr")).root
+    return ArtifactStore(options.store or default_store(options.out_dir)).root
 
 
 def initial_guess_branches(model: str, options: StudyOptions, kinds: list[str] | None = None,
@@ -264,7 +264,7 @@ def slice_model(model: str, out_dir: str, up: str | None = None, store: str | No
 
     spec = load_branch_spec(str(Path(model).resolve()), up)
     out = Path(out_dir).resolve()
-    store_root = ArtifactStore(store or str(out / "store.zarr")).root
+    store_root = ArtifactStore(store or default_store(out)).root
     cfg = config if isinstance(config, SliceConfig) else SliceConfig.model_validate(config or {})
     with ExitStack() as stack:
         stack.enter_context(cache_settings(store_root))

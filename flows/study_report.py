@@ -55,7 +55,7 @@ def table_rows(study: dict[str, Any]) -> list[dict[str, Any]]:
         if study.get("kind") in ("methods", "ablation"):
             row["overhang held out"] = m.get("sf.heldout.overhang_area_fraction")
             row["overhang of the layers"] = m.get("sf.heldout.overhang_area_fraction_layers")
-            row["collisions"] = m.get("collisions")
+            row["collisions"] = m.get("n_collisions")
             if "fea.max_strain" in m:
                 row["max strain"] = m.get("fea.max_strain")
                 row["strain p99"] = m.get("fea.max_strain_p99")

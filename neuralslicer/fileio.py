@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import uuid
@@ -47,6 +48,11 @@ def to_json(value: Any) -> Any:
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
+
+
+def json_sha256(data: Any) -> str:
+    """sha256 (hex) of the canonical JSON of ``data``: sorted keys, no spaces, anything not JSON as its str()."""
+    return hashlib.sha256(json.dumps(data, sort_keys=True, separators=(",", ":"), default=str).encode()).hexdigest()
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:

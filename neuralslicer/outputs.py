@@ -91,6 +91,8 @@ class RunResults:
     verify: tuple[dict[str, np.ndarray], dict[str, float]] | None = None
     attempts: list[Attempt] = field(default_factory=list)
     strength_rounds: list[StrengthRound] = field(default_factory=list)
+    #: the program step's G-code (None: written from ``program`` here)
+    gcode: bytes | None = None
 
     @cached_property
     def lpd_b(self) -> np.ndarray:
@@ -212,7 +214,6 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics.update({k: run.print_metrics[k] for k in PRINT_METRICS if k in run.print_metrics})
     if "stress_infill_fraction" in run.toolpaths.attrs:
         metrics["toolpath.stress_infill_fraction"] = run.toolpaths.attrs["stress_infill_fraction"]
-    metrics["collisions"] = int(run.print_metrics.get("n_collisions", 0))
     metrics.update({f"tilt.{k}": v for k, v in (run.print_metrics.get("axis_tilt") or {}).items()})
     metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
     metrics.update({f"platform_turn.{k}": v for k, v in (run.print_metrics.get("axis_platform") or {}).items()})
@@ -356,7 +357,7 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     write_samples_ply(d / "samples_B.ply", run.samples)
     write_field_vtu(d / "field.vtu", run.field)
     write_layers(d / "layers", run.layers.meshes)
-    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False)
+    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode)
     metrics = run_metrics(run, alpha_deg, beta_deg)
     figures = draw_figures(d / "figures", run, alpha_deg, beta_deg)
     sections = {}
@@ -381,7 +382,7 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
             f"{metrics['tilt.n_collisions_before']:,} waypoints of the printed field collided; tilting the tool axis away "
             f"from the LPD by at most {metrics['tilt.max_tilt_deg']:g}° (ramped along the path, "
             f"{metrics['tilt.n_waypoints_tilted']:,} waypoints turned) cleared {metrics['tilt.n_collisions_cleared']:,} "
-            f"of them; {metrics['collisions']:,} remain. The layers are the field's own.")
+            f"of them; {metrics['n_collisions']:,} remain. The layers are the field's own.")
     beads = run.print_metrics.get("beads")
     if beads:
         lo, hi = beads["thickness_range_mm"]
@@ -410,12 +411,13 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
 
 
 def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
-                        *, robot: bool = False, vtp: bool = True, png: bool = True) -> dict[str, Path]:
+                        *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None
+                        ) -> dict[str, Path]:
     """Write ``toolpaths/waypoints.csv``, ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
     ``robot_waypoints.csv``/``.json`` (if ``robot``) and ``print_metrics.json`` under ``out_dir``."""
     out = Path(out_dir)
     files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp),
-             "gcode": write_gcode(out / "print.gcode", program)}
+             "gcode": write_gcode(out / "print.gcode", program if gcode is None else gcode)}
     if vtp:
         files["vtp"] = write_toolpaths_vtp(out / "toolpaths.vtp", tp)
     if png:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 from neuralslicer.config import SliceConfig
@@ -15,13 +16,27 @@ from neuralslicer.model.solid import Solid
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.motion.profile import MachineProfile, load_profile
 
+@dataclass(frozen=True)
+class Names:
+    """How the checks' messages name what the user set: the pipeline's parameters by default (a deployed flow's);
+    the command line passes its flags (``cli.options.CLI_NAMES``)."""
+
+    out: str = "out_dir"
+    store: str = "store"
+    units: str = "units"
+    layer_height: str = "layers.layer_height"
+    machine: str = "machine"
+    force: str = "force"
+    config: str = "the configuration"
+
+
 #: a model whose bounding-box diagonal is outside this range (mm) was most likely read in the wrong unit
 PLAUSIBLE_SIZE_MM = (1.0, 5000.0)
 #: more layers than this are refused unless forced (a wrong unit or layer height, not a real print)
 MAX_LAYERS = 5000
 
 
-def check_output_dir(out_dir: Path, inputs: list[Path], option: str = "--out") -> None:
+def check_output_dir(out_dir: Path, inputs: list[Path], option: str = Names.out) -> None:
     """The output folder can be created and written, is not a file, and holds none of the inputs."""
     out_dir = Path(out_dir).resolve()
     if out_dir.exists() and not out_dir.is_dir():
@@ -34,7 +49,7 @@ def check_output_dir(out_dir: Path, inputs: list[Path], option: str = "--out") -
     _check_writable(out_dir, option)
 
 
-def check_store_location(store: str, option: str = "--store") -> None:
+def check_store_location(store: str, option: str = Names.store) -> None:
     """A local store is a folder (or does not exist yet) in a writable place; remote URLs are not checked."""
     if "://" in store and not store.startswith("file://"):
         return
@@ -59,7 +74,7 @@ def _check_writable(path: Path, option: str) -> None:
         raise InputError(option, f"{probe} is not writable ({exc.strerror.lower() if exc.strerror else exc})") from None
 
 
-def check_scale(solid: Solid, spec: ModelSpec) -> float:
+def check_scale(solid: Solid, spec: ModelSpec, names: Names = Names()) -> float:
     """The model's bounding-box diagonal in mm; an implausible size suggests the unit to use."""
     lo, hi = solid.bounds
     diag = float(math.dist(lo, hi))
@@ -72,34 +87,34 @@ def check_scale(solid: Solid, spec: ModelSpec) -> float:
         where = spec.source or (files[0] if files else "model")
         raise InputError(where, f"the model is {diag:.4g} mm across (bounding-box diagonal), implausible for a "
                          f"print in {spec.units}: its coordinates are probably in another unit; give "
-                         + (" or ".join(f"--units {u}" for u in hint) if hint else "the right --units")
+                         + (" or ".join(f"{names.units} {u}" for u in hint) if hint else f"the right {names.units}")
                          + " (or 'units:' in a spec)")
     return diag
 
 
-def check_layer_count(solid: Solid, config: SliceConfig, limit: int = MAX_LAYERS) -> int:
+def check_layer_count(solid: Solid, config: SliceConfig, limit: int = MAX_LAYERS, names: Names = Names()) -> int:
     """Estimated layer count (model height / layer height); refused above ``limit`` or below 2."""
     height = float(solid.bounds[1][2] - solid.platform_z)
     h = config.layers.layer_height
     n = math.ceil(height / h)
     if n > limit:
-        raise InputError("--layer-height", f"{h:g} mm on a model {height:.4g} mm tall makes about {n:,} layers "
-                         f"(limit {limit:,}); check the units or the layer height, or pass --force")
+        raise InputError(names.layer_height, f"{h:g} mm on a model {height:.4g} mm tall makes about {n:,} layers "
+                         f"(limit {limit:,}); check the units or the layer height, or pass {names.force}")
     if n < 2:
-        raise InputError("--layer-height", f"{h:g} mm is at least the model's height ({height:.4g} mm): "
+        raise InputError(names.layer_height, f"{h:g} mm is at least the model's height ({height:.4g} mm): "
                          "no curved layers to print; use a smaller layer height")
     if not config.layers.t_min <= h <= config.layers.t_max:
-        raise InputError("--layer-height", f"{h:g} mm is outside the layers' thickness range "
-                         f"[{config.layers.t_min:g}, {config.layers.t_max:g}] mm (layers.t_min/t_max in --config)")
+        raise InputError(names.layer_height, f"{h:g} mm is outside the layers' thickness range "
+                         f"[{config.layers.t_min:g}, {config.layers.t_max:g}] mm (layers.t_min/t_max in {names.config})")
     return n
 
 
-def check_machine(name: str) -> MachineProfile:
-    """The machine profile, loaded (an error names --machine)."""
+def check_machine(name: str, option: str = Names.machine) -> MachineProfile:
+    """The machine profile, loaded (an error names the option)."""
     try:
         return load_profile(name)
     except InputError as exc:
-        raise InputError(f"--machine {exc.where}", exc.message) from None
+        raise InputError(f"{option} {exc.where}", exc.message) from None
 
 
 def check_fea_regions(solid: SolidLike, spec: FEASpec) -> None:
@@ -111,19 +126,20 @@ def check_fea_regions(solid: SolidLike, spec: FEASpec) -> None:
 
 
 def preflight(spec: ModelSpec, solid: Solid, config: SliceConfig, out_dir: Path, store: str, force: bool = False,
-              needs_fea: bool = False) -> None:
-    """Every check of a slice before any work starts (outputs, store, scale, layers, machine and its nozzle, FEA)."""
-    check_output_dir(out_dir, spec.files() + ([spec.source] if spec.source is not None else []))
-    check_store_location(store)
-    check_scale(solid, spec)
-    check_layer_count(solid, config, limit=10**9 if force else MAX_LAYERS)
-    machine = check_machine(config.machine)
+              needs_fea: bool = False, names: Names = Names()) -> None:
+    """Every check of a slice before any work starts (outputs, store, scale, layers, machine and its nozzle, FEA);
+    ``names``: how the messages name the settings (the command line's flags, or the flow's parameters)."""
+    check_output_dir(out_dir, spec.files() + ([spec.source] if spec.source is not None else []), names.out)
+    check_store_location(store, names.store)
+    check_scale(solid, spec, names)
+    check_layer_count(solid, config, limit=10**9 if force else MAX_LAYERS, names=names)
+    machine = check_machine(config.machine, names.machine)
     lo, hi = machine.nozzle.bead_width_mm
     if not lo <= config.toolpath.line_width <= hi:
         raise InputError("toolpath.line_width", f"{config.toolpath.line_width:g} mm is outside the bead widths the "
                          f"nozzle of {machine.name} lays ({lo:g}..{hi:g} mm, nozzle.bead_width_mm in the profile)")
     if needs_fea:
         if spec.fea is None:
-            raise InputError(spec.source or "model", "strength (sr), --verify and toolpath.infill: stress need the "
+            raise InputError(spec.source or "model", "strength (sr), the verification and toolpath.infill: stress need the "
                              "spec's 'fea' block (supports and loads)")
         check_fea_regions(solid, spec.fea)

@@ -1,7 +1,6 @@
 """Reproducibility record of a run: exact inputs (hashes), parameters, seeds, package versions and device."""
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import platform
@@ -15,7 +14,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from neuralslicer.fileio import write_json_atomic
+from neuralslicer.fileio import json_sha256, write_json_atomic
 
 PACKAGES = (
     "neuralslicer", "numpy", "scipy", "torch", "trimesh", "pytetwild", "libigl", "zarr", "prefect",
@@ -110,11 +109,6 @@ def input_hashes(spec: BaseModel, extra_files: dict[str, str | Path] | None = No
     return {"spec_sha256": spec_digest(spec), "files": files}
 
 
-def canonical_digest(data: Any) -> str:
-    """sha256 of the canonical JSON of a value."""
-    return hashlib.sha256(json.dumps(data, sort_keys=True, separators=(",", ":"), default=str).encode()).hexdigest()
-
-
 def provenance(spec: BaseModel, config: BaseModel, extra_files: dict[str, str | Path] | None = None,
                extra: dict[str, Any] | None = None, device_used: dict[str, Any] | None = None) -> dict[str, Any]:
     """The full record of a run: inputs by hash, spec and config, seeds, package versions, device (``device_used``:
@@ -125,7 +119,7 @@ def provenance(spec: BaseModel, config: BaseModel, extra_files: dict[str, str | 
         "inputs": input_hashes(spec, extra_files),
         "spec": spec.model_dump(mode="json"),
         "config": cfg,
-        "config_sha256": canonical_digest(cfg),
+        "config_sha256": json_sha256(cfg),
         "seeds": seeds(config),
         "versions": package_versions(),
         "device": device_info(device, device_used),
@@ -159,7 +153,7 @@ def metrics_entries(record: dict[str, Any]) -> dict[str, Any]:
 
 def record_digest(record: dict[str, Any]) -> str:
     """Content key of a record (time and command excluded): the same run gives the same key."""
-    return canonical_digest({k: v for k, v in record.items() if k not in ("recorded_at", "command")})[:20]
+    return json_sha256({k: v for k, v in record.items() if k not in ("recorded_at", "command")})[:20]
 
 
 def add_to_metrics(out_dir: str | Path, record: dict[str, Any]) -> None:

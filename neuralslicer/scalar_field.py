@@ -1,7 +1,6 @@
 """The printing field G on the cage: values at cage vertices, piecewise linear, LPD constant per tet."""
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,17 +58,3 @@ class ScalarField:
     def from_arrays(cls, cage_vertices: np.ndarray, cage_tets: np.ndarray, arrays: dict, attrs: dict) -> ScalarField:
         """Rebuild on its cage from store arrays."""
         return cls(cage_vertices, cage_tets, np.asarray(arrays["G"], dtype=np.float64), dict(attrs))
-
-
-def smallest_clean_blend(collisions: Callable[[float], int], steps: int) -> float:
-    """The smallest blend weight t in (0, 1] toward planar layers whose print is collision-free, by
-    bisection to within 2^-steps; 1 (planar layers, a vertical nozzle printing bottom-up) when no
-    smaller t is. ``collisions(t)`` prints the blend (:meth:`ScalarField.blend`) and counts its collisions."""
-    lo, hi, best = 0.0, 1.0, None
-    for _ in range(steps):
-        t = 0.5 * (lo + hi)
-        if collisions(t) == 0:
-            hi = best = t
-        else:
-            lo = t
-    return 1.0 if best is None else best

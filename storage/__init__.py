@@ -1,13 +1,14 @@
 """Artifact store: zarr groups written atomically, mesh files, checkpoints and cache keys."""
 from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
 from storage.keys import canonical, digest
-from storage.store import ArtifactRef, ArtifactStore
+from storage.store import ArtifactRef, ArtifactStore, default_store
 
 __all__ = [
     "ArtifactRef",
     "ArtifactStore",
     "atomic_path",
     "canonical",
+    "default_store",
     "digest",
     "write_json_atomic",
     "write_text_atomic",

@@ -1,13 +1,11 @@
 """Cache keys: digests of a step's name, version and parameters, with inputs by their digest."""
 from __future__ import annotations
 
-import hashlib
-import json
 from typing import Any
 
 from pydantic import BaseModel
 
-from neuralslicer.fileio import to_json
+from neuralslicer.fileio import json_sha256, to_json
 from storage.store import ArtifactRef
 
 
@@ -26,5 +24,4 @@ def canonical(value: Any) -> Any:
 
 def digest(*parts: Any, length: int = 20) -> str:
     """Hex digest of canonical JSON of the parts."""
-    text = json.dumps(canonical(list(parts)), sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()[:length]
+    return json_sha256(canonical(list(parts)))[:length]

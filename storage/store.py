@@ -23,6 +23,11 @@ COMPLETE = "_complete"
 STAGING = "_staging"
 
 
+def default_store(out_dir: str | Path) -> str:
+    """Where a run keeps its artifacts when no store is given: ``OUT/store.zarr``."""
+    return str(Path(out_dir) / "store.zarr")
+
+
 @dataclass(frozen=True)
 class ArtifactRef:
     """A reference to one complete group of the store: what tasks pass instead of arrays."""

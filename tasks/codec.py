@@ -9,12 +9,13 @@ import trimesh
 
 from neuralslicer.cage import Cage
 from neuralslicer.errors import InputError
+from neuralslicer.field_step import history_of
 from neuralslicer.fea import FEAResult
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Solid
-from neuralslicer.motion.collision import TRAVEL_PATH, CollisionReport
+from neuralslicer.motion.collision import CollisionReport, part_collisions
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.neural.initial_guess import load_user_field
 from neuralslicer.samples import SurfaceSamples
@@ -47,7 +48,7 @@ def read_solid(ref: ArtifactRef) -> Solid:
 
 
 def read_surface(ref: ArtifactRef) -> tuple[trimesh.Trimesh, dict[str, Any]]:
-    """The boundary surface stored by the solid step, with its genus, volume and bounds."""
+    """The boundary surface stored by the surface step, with its genus, volume and bounds."""
     arrays, attrs = read(ref)
     return trimesh.Trimesh(arrays["vertices"], arrays["faces"], process=False), attrs
 
@@ -75,8 +76,7 @@ def read_field(cage: Cage, ref: ArtifactRef) -> ScalarField:
 
 def read_field_history(ref: ArtifactRef) -> dict[str, np.ndarray]:
     """The optimisation's per-step history of a stored field (empty for the height field)."""
-    arrays, _ = read(ref)
-    return {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("history/")}
+    return history_of(read(ref))
 
 
 def read_layers(ref: ArtifactRef) -> Layers:
@@ -84,9 +84,9 @@ def read_layers(ref: ArtifactRef) -> Layers:
     return Layers.from_arrays(*read(ref))
 
 
-def encode_print(tp: Toolpaths, program: MachineProgram, metrics: dict, collisions: CollisionReport
+def encode_motion(tp: Toolpaths, program: MachineProgram, metrics: dict, collisions: CollisionReport
                  ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """One group for the toolpaths step: toolpaths/*, program/*, collisions/* and the metrics."""
+    """One group for the motion step: toolpaths/* (as moved), program/*, collisions/* and the metrics."""
     tp_arrays, tp_attrs = tp.to_arrays()
     prog_arrays, prog_attrs = program.to_arrays()
     arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()},
@@ -95,8 +95,18 @@ def encode_print(tp: Toolpaths, program: MachineProgram, metrics: dict, collisio
     return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
 
 
-def read_print(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
-    """Toolpaths, machine program and print metrics (the inverse of encode_print)."""
+def read_toolpaths(ref: ArtifactRef) -> Toolpaths:
+    """The toolpaths step's waypoints."""
+    return Toolpaths.from_arrays(*read(ref))
+
+
+def read_program(ref: ArtifactRef) -> bytes:
+    """The program step's G-code."""
+    return read(ref, ["gcode"])[0]["gcode"].tobytes()
+
+
+def read_motion(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
+    """Toolpaths, machine program and print metrics (the inverse of encode_motion)."""
     arrays, attrs = read(ref)
     part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
     return (
@@ -125,19 +135,15 @@ def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
-    """(hits (k,3), witnesses (k,3)) of a stored print: the waypoints whose head hit material or the platform and a
-    point it hit (NaN where the print predates stored locations); travel collisions are left out (the travel lift
-    is the planner's answer to those, the field cannot place the head there)."""
+    """(hits (k,3), witnesses (k,3)) of a stored print (:func:`part_collisions`; NaN witnesses where the print
+    predates stored locations)."""
     names = ["toolpaths/xyz", "collisions/indices", "collisions/kind"]
     try:
         arrays, _ = read(ref, [*names, "collisions/locations"])
     except KeyError:
         arrays, _ = read(ref, names)
-    idx = np.asarray(arrays["collisions/indices"], np.int64)
-    keep = np.asarray(arrays["collisions/kind"]) != TRAVEL_PATH
-    where = arrays.get("collisions/locations")
-    witnesses = np.asarray(where, np.float64)[keep] if where is not None else np.full((int(keep.sum()), 3), np.nan)
-    return np.asarray(arrays["toolpaths/xyz"], np.float64)[idx[keep]], witnesses
+    return part_collisions(arrays["toolpaths/xyz"], arrays["collisions/indices"], arrays["collisions/kind"],
+                           arrays.get("collisions/locations"))
 
 
 def read_fea(ref: ArtifactRef) -> FEAResult:
@@ -171,23 +177,25 @@ def read_user_field(ref: ArtifactRef | None) -> tuple[np.ndarray | None, np.ndar
     return arrays["values"], arrays["points"]
 
 
-def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
-             layers: ArtifactRef, printing: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
+def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
+             layers: ArtifactRef, motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
              attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
-             sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None) -> RunResults:
+             sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None,
+             toolpaths: ArtifactRef | None = None, program_ref: ArtifactRef | None = None) -> RunResults:
     """Every step's result of one slice, as the output contract needs them."""
     from neuralslicer.outputs import Attempt, RunResults
 
-    refs = {"model": model, "solid": solid, "samples": samples, "cage": cage, "field": field, "layers": layers,
-            "toolpaths": printing, "stress_samples": stress, "verify": verify}
+    refs = {"model": model, "surface": surface, "samples": samples, "cage": cage, "field": field, "layers": layers,
+            "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress, "verify": verify}
     c = read_cage(cage)
-    surface, surface_attrs = read_surface(solid)
-    tp, program, print_metrics = read_print(printing)
-    maps = {"printed": read_collision_map(printing)}
-    if attempts and attempts[0][2] != printing:
+    surface_mesh, surface_attrs = read_surface(surface)
+    tp, program, print_metrics = read_motion(motion)
+    gcode = read_program(program_ref) if program_ref is not None else None
+    maps = {"printed": read_collision_map(motion)}
+    if attempts and attempts[0][2] != motion:
         maps = {f"first print ({attempts[0][0]})": read_collision_map(attempts[0][2]), **maps}
     return RunResults(
-        model=model.model, surface=surface, surface_attrs=surface_attrs, samples=read_samples(samples), cage=c,
+        model=model.model, surface=surface_mesh, surface_attrs=surface_attrs, samples=read_samples(samples), cage=c,
         cage_attrs=attrs_of(cage), field=read_field(c, field), field_history=read_field_history(field),
         layers=read_layers(layers), toolpaths=tp, program=program, print_metrics=print_metrics,
         collision_maps=maps, wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
@@ -195,13 +203,14 @@ def read_run(model: ArtifactRef, solid: ArtifactRef, samples: ArtifactRef, cage:
         verify=read(verify) if verify is not None else None,
         attempts=[Attempt(label, read_field(c, f), attrs_of(p)["metrics"]) for label, f, p in attempts],
         strength_rounds=[read_strength_round(label, p, printed) for label, _, p, printed in sr_rounds or []],
+        gcode=gcode,
     )
 
 
-def read_strength_round(label: str, printing: ArtifactRef, printed: ArtifactRef) -> StrengthRound:
+def read_strength_round(label: str, motion: ArtifactRef, printed: ArtifactRef) -> StrengthRound:
     """One strength round: its print's collisions, the FEA of that print (strain figures) and how tau_max turned."""
     from neuralslicer.outputs import TURN_ARRAYS, StrengthRound
 
     arrays, attrs = read(printed, [f"turn/{k}" for k in TURN_ARRAYS])
-    return StrengthRound(label, int(attrs_of(printing)["metrics"].get("n_collisions", 0)), attrs,
+    return StrengthRound(label, int(attrs_of(motion)["metrics"].get("n_collisions", 0)), attrs,
                          {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items()})

@@ -16,42 +16,25 @@ from prefect.serializers import Serializer
 from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
 from prefect.states import State
 
+from neuralslicer.provenance import package_versions
 from storage import ArtifactRef, ArtifactStore, digest
 from tasks.progress import say
 
-# bump when a step's output for the same inputs changes (a cache-busting code version per step)
-STEP_VERSIONS = {
-    "model": "1",
-    "solid": "1",
-    "samples": "1",
-    "cage": "1",
-    "fea": "1",
-    "stress_samples": "1",
-    "field": "4",
-    "field_s3": "3",
-    "field_s3_oneshot": "1",
-    "field_blend": "1",
-    "layers": "5",
-    "toolpaths": "11",
-    "verify": "3",
-    "fea_printed": "1",
-    "export": "5",
-}
-
-
-def output_ref(step: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
+def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
     """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""
     skip = {"store", *exclude}
-    key = digest(step, STEP_VERSIONS[step], {k: v for k, v in parameters.items() if k not in skip})
+    key = digest(step, version, {k: v for k, v in parameters.items() if k not in skip})
     model = parameters.get("name") or next(v.model for v in parameters.values() if isinstance(v, ArtifactRef))
     return ArtifactRef(store=str(parameters["store"]), path=f"{model}/{step}/{key}", digest=key)
 
 
 @dataclass(frozen=True)
 class PipelineStep:
-    """How a pipeline task names its output: step name, parameters left out of the key, extra validity check."""
+    """How a pipeline task names its output: step name, code version, parameters left out of the key, extra validity
+    check."""
 
     step: str
+    version: str
     signature: inspect.Signature
     exclude: tuple[str, ...] = ()
     valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None
@@ -64,7 +47,7 @@ class PipelineStep:
 
     def output(self, parameters: dict[str, Any]) -> ArtifactRef:
         """The output ref for these parameters."""
-        return output_ref(self.step, self.bind(parameters), self.exclude)
+        return output_ref(self.step, self.version, self.bind(parameters), self.exclude)
 
     def done(self, parameters: dict[str, Any]) -> bool:
         """True when the output exists in the store (and passes the validity check)."""
@@ -126,6 +109,7 @@ def run_step(task_: Any, **parameters: Any) -> State:
 
 def pipeline_task(
     step: str,
+    version: str,
     exclude: tuple[str, ...] = (),
     valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None,
     **task_options: Any,
@@ -134,14 +118,15 @@ def pipeline_task(
 
     The wrapped function receives `out` (its output ref) and the step's parameters and returns
     `(arrays, attrs)`; the wrapper writes them atomically as the group `out.path`, with the wall time.
-    Parameters named in `exclude` do not enter the cache key (e.g. file paths whose content is hashed
+    `version` is the step's code version: bump it when the step's output for the same inputs changes (it enters the
+    cache key, so older artifacts are not reused). Parameters named in `exclude` do not enter the cache key (e.g. file paths whose content is hashed
     in another parameter). The task is idempotent: when its output group exists it does no work.
     """
 
     def decorate(fn: Callable[..., tuple[dict, dict]]) -> Any:
         signature = inspect.signature(fn)
         public = signature.replace(parameters=[p for n, p in signature.parameters.items() if n != "out"])
-        pipeline = PipelineStep(step, public, exclude, valid)
+        pipeline = PipelineStep(step, version, public, exclude, valid)
 
         @functools.wraps(fn)
         def body(*args: Any, **kwargs: Any) -> ArtifactRef:
@@ -154,7 +139,7 @@ def pipeline_task(
                 arrays, attrs = fn(out=out, **params)
                 wall = time.perf_counter() - start
                 say(f"{step}: done in {wall:.1f} s")
-                return arrays, {**attrs, "step": step, "wall_s": wall, "versions": versions()}
+                return arrays, {**attrs, "step": step, "wall_s": wall, "versions": package_versions()}
 
             ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))
             return out
@@ -168,17 +153,3 @@ def pipeline_task(
         return pipeline_task_
 
     return decorate
-
-
-@functools.cache
-def versions() -> dict[str, str]:
-    """Versions of the packages that shape the results (recorded with every artifact)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for name in ("neuralslicer", "numpy", "scipy", "torch", "trimesh", "pytetwild", "libigl", "zarr", "prefect"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            continue
-    return out

@@ -18,16 +18,19 @@ def _export_current(out: ArtifactRef, params: dict[str, Any]) -> bool:
     return stamp.is_file() and stamp.read_text().strip() == out.digest and Path(params["out_dir"], "metrics.json").is_file()
 
 
-@pipeline_task("export", exclude=(), valid=_export_current)
-def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, solid: ArtifactRef,
+@pipeline_task("export", version="6", exclude=(), valid=_export_current)
+def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, surface: ArtifactRef,
                 samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, layers: ArtifactRef,
-                printing: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,
+                motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,
                 alpha_deg: float, beta_deg: float, attempts: list[tuple[str, ArtifactRef, ArtifactRef]] | None = None,
-                sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None) -> tuple[dict, dict]:
-    """Write model.ply, layers/, field.vtu, samples_B.ply, the print, metrics.json, report.md and figures to out_dir."""
+                sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None,
+                toolpaths: ArtifactRef | None = None, program: ArtifactRef | None = None) -> tuple[dict, dict]:
+    """Write model.ply, layers/, field.vtu, samples_B.ply, the print (``motion``: the motion step's output; the
+    G-code of ``program``), metrics.json, report.md and figures to out_dir."""
     from neuralslicer.outputs import write_outputs   # the report's plotting libraries: only when exporting
 
-    run = read_run(model, solid, samples, cage, field, layers, printing, stress, verify, attempts or [], sr_rounds or [])
+    run = read_run(model, surface, samples, cage, field, layers, motion, stress, verify, attempts or [], sr_rounds or [],
+                   toolpaths, program)
     metrics = write_outputs(out_dir, run, alpha_deg, beta_deg, robot)
     write_text_atomic(Path(out_dir) / STAMP, out.digest)
     return {}, {"out_dir": str(out_dir), "metrics": metrics}

@@ -5,15 +5,15 @@ import numpy as np
 from prefect import get_run_logger
 
 from neuralslicer.fea import run_fea, stress_samples
-from neuralslicer.fea.verify import printed_fea, stress_turn, verify_field, verify_print
+from neuralslicer.fea.verify import printed_fea_record, verify_field, verify_print
 from neuralslicer.layers import LayerConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
-from tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_print, read_solid
+from tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_motion, read_solid
 from tasks.common import pipeline_task
 
 
-@pipeline_task("fea")
+@pipeline_task("fea", version="1")
 def fea_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, dict]:
     """Isotropic linear elasticity on the voxels of the solid: stresses, principal directions, tau_max."""
     arrays, attrs = run_fea(read_solid(model), read_fea_spec(model)).to_arrays()
@@ -21,40 +21,34 @@ def fea_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, di
     return arrays, attrs
 
 
-@pipeline_task("stress_samples")
+@pipeline_task("stress_samples", version="1")
 def stress_samples_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef) -> tuple[dict, dict]:
     """T: voxel centres in the top fraction of max principal stress magnitude, with volume and tau_max."""
     return stress_samples(read_fea(fea), read_fea_spec(model).top_fraction).to_arrays()
 
 
-@pipeline_task("verify")
+@pipeline_task("verify", version="3")
 def verify_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef,
-                field: ArtifactRef, printing: ArtifactRef | None = None, layer_config: LayerConfig | None = None,
+                field: ArtifactRef, motion: ArtifactRef | None = None, layer_config: LayerConfig | None = None,
                 toolpath_config: ToolpathConfig | None = None) -> tuple[dict, dict]:
     """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic).
-    With ``printing`` the filaments lie along the printed toolpaths: the computed layers' own, and toolpaths of
+    With ``motion`` (a print) the filaments lie along the printed toolpaths: the computed layers' own, and toolpaths of
     planar layers made here with the same settings; without, along the ideal direction for both."""
     solid, computed = read_solid(model), read_field(read_cage(cage), field)
-    if printing is None:
+    if motion is None:
         return verify_field(solid, read_fea_spec(model), computed, read_fea(fea))
-    return verify_print(solid, read_fea_spec(model), computed, read_print(printing)[0], layer_config, toolpath_config,
+    return verify_print(solid, read_fea_spec(model), computed, read_motion(motion)[0], layer_config, toolpath_config,
                         read_fea(fea))
 
 
-@pipeline_task("fea_printed")
+@pipeline_task("fea_printed", version="1")
 def printed_fea_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef,
-                     field: ArtifactRef, printing: ArtifactRef) -> tuple[dict, dict]:
+                     field: ArtifactRef, motion: ArtifactRef) -> tuple[dict, dict]:
     """The FEA of the printed part (transversely isotropic, filaments along the printed toolpaths, layers of the
     field): stored like the isotropic FEA (a strength round samples its T from it), with the print's strain and how
     far tau_max turned."""
-    solid, spec, iso = read_solid(model), read_fea_spec(model), read_fea(fea)
-    computed = read_field(read_cage(cage), field)
-    printed = printed_fea(solid, spec, computed, read_print(printing)[0], iso)
-    arrays, attrs = printed["result"].to_arrays()
-    turn = stress_turn(iso, printed["result"], computed, spec.top_fraction)
-    figures = {k: float(printed[k]) for k in ("max_strain", "max_strain_p99", "max_displacement_mm")}
-    figures.update(tau_turn_median_deg=float(np.median(turn["tau_turn_deg"])),
-                   tau_turn_p90_deg=float(np.percentile(turn["tau_turn_deg"], 90)))
+    arrays, attrs = printed_fea_record(read_solid(model), read_fea_spec(model), read_field(read_cage(cage), field),
+                                       read_motion(motion)[0], read_fea(fea))
     get_run_logger().info("printed part: max strain %.4g, tau_max turned %.1f° (median) by the printed material",
-                          figures["max_strain"], figures["tau_turn_median_deg"])
-    return {**arrays, **{f"turn/{k}": v for k, v in turn.items()}}, {**attrs, **figures}
+                          attrs["max_strain"], attrs["tau_turn_median_deg"])
+    return arrays, attrs

@@ -12,21 +12,22 @@ from neuralslicer.fea.samples import stress_field
 from neuralslicer.layers import LayerConfig, slice_layers
 from neuralslicer.model.solid import implicit_solid
 from neuralslicer.model.spec import ModelSpec
-from neuralslicer.motion.pipeline import plan_print
+from neuralslicer.field_step import blend_record, height_record, s3_oneshot_record, s3_record
+from neuralslicer.gcode.writers import gcode_bytes
+from neuralslicer.motion.pipeline import plan_motion_of, plan_toolpaths
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.samples import surface_samples
-from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
 from storage import ArtifactRef
 from storage.content_cache import ContentCache, cache_root
-from tasks.codec import (encode_print, read, read_cage, read_fea, read_fea_spec, read_field, read_field_history,
-                         read_layers, read_part_collisions, read_samples, read_solid, read_stress, read_user_field)
+from tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_motion,
+                         read_part_collisions, read_samples, read_solid, read_stress, read_toolpaths, read_user_field)
 from tasks.common import pipeline_task
 from tasks.progress import Progress, say
 
 
-@pipeline_task("model", exclude=("spec",), retries=0)
+@pipeline_task("model", version="1", exclude=("spec",), retries=0)
 def model_task(out: ArtifactRef, store: str, name: str, spec: ModelSpec, content: str) -> tuple[dict, dict]:
     """Read every file of the spec and store the solid's components in the build frame."""
     solid = implicit_solid(spec)
@@ -35,13 +36,13 @@ def model_task(out: ArtifactRef, store: str, name: str, spec: ModelSpec, content
     return arrays, {**attrs, "spec": spec.model_dump(mode="json"), "content_sha256": content}
 
 
-@pipeline_task("solid")
-def solid_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, dict]:
+@pipeline_task("surface", version="1")
+def surface_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, dict]:
     """The boundary surface H = 0 of the solid, its genus, volume and bounds."""
     return read_solid(model).surface_record()
 
 
-@pipeline_task("samples")
+@pipeline_task("samples", version="1")
 def samples_task(out: ArtifactRef, store: str, model: ArtifactRef, config: SampleConfig) -> tuple[dict, dict]:
     """Surface samples B with normals, area weights, kNN lists and platform flags."""
     samples = surface_samples(read_solid(model), config.n_samples, k=config.k, seed=config.seed)
@@ -50,7 +51,7 @@ def samples_task(out: ArtifactRef, store: str, model: ArtifactRef, config: Sampl
     return samples.to_arrays()
 
 
-@pipeline_task("cage")
+@pipeline_task("cage", version="1")
 def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: ArtifactRef, config: CageConfig
               ) -> tuple[dict, dict]:
     """Tetrahedralized offset of the solid at the target element count, containing B and interior points."""
@@ -76,7 +77,7 @@ def _intact_cage(arrays: dict, attrs: dict) -> bool:
         return False
 
 
-@pipeline_task("field")
+@pipeline_task("field", version="4")
 def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
                stress: ArtifactRef | None, objectives: list[str], config: NeuralConfig,
                user_field: ArtifactRef | None = None, refine_prints: list[ArtifactRef] | None = None,
@@ -87,8 +88,7 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
     strength round with new stress samples)."""
     c = read_cage(cage)
     if not objectives:
-        arrays, attrs = ScalarField.height(c.vertices, c.tets).to_arrays()
-        return arrays, {**attrs, "objectives": [], "steps": 0}
+        return height_record(c)
     from neuralslicer.neural.optimise import FieldResult, Refinement   # torch: only when a field is optimised
     from tasks.optimise import run_optimisation
 
@@ -102,49 +102,39 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
                             warm_start=weights if refine is None else None)
 
 
-@pipeline_task("field_s3")
+@pipeline_task("field_s3", version="3")
 def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
                   stress: ArtifactRef | None, objectives: list[str], config: S3DeformConfig) -> tuple[dict, dict]:
     """S3-Slicer's field G: its iterative deformation of the model's tet mesh (or the cage), carried to the cage."""
-    from neuralslicer.baselines.s3_deform import s3_field
-
-    c, solid = read_cage(cage), read_solid(model)
-    tet = next((m for m in solid.components if getattr(m, "tets", None) is not None), None)
     with Progress("s3", total=config.resolve(model.model, objectives).outer_loops) as bar:
-        result = s3_field(c.vertices, c.tets, read_samples(samples),
-                          (tet.vertices, tet.tets) if tet is not None and len(solid.components) == 1 else None,
-                          read_stress(stress) if stress is not None else None, objectives, config, model.model,
-                          progress=lambda it, info: bar.update(it, total=float(info["fabrication_sl"])))
-    get_run_logger().info("s3 on the %s mesh: %s", result.on, result.summary().get("satisfaction"))
-    return result.to_arrays()
+        arrays, attrs = s3_record(read_cage(cage), read_solid(model), read_samples(samples),
+                                  read_stress(stress) if stress is not None else None, objectives, config, model.model,
+                                  progress=lambda it, info: bar.update(it, total=float(info["fabrication_sl"])))
+    get_run_logger().info("s3 on the %s mesh: %s", attrs.get("on"), attrs.get("satisfaction"))
+    return arrays, attrs
 
 
-@pipeline_task("field_s3_oneshot")
+@pipeline_task("field_s3_oneshot", version="1")
 def s3_oneshot_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
                           stress: ArtifactRef | None, objectives: list[str], config: S3Config) -> tuple[dict, dict]:
     """The one-shot S3 variant's field G: per-element rotations optimised in the deformed space, one ARAP solve."""
-    from neuralslicer.baselines.s3 import optimise_s3   # torch: only when a field is optimised
-
-    c = read_cage(cage)
     with Progress("s3", total=config.steps) as bar:
-        result = optimise_s3(c.vertices, c.tets, read_samples(samples), read_stress(stress) if stress is not None else None,
-                             objectives, config, read_solid(model).platform_z,
-                             progress=lambda step, info: bar.update(step, total=float(info["total"])))
-    get_run_logger().info("s3_oneshot: %d steps, %s", result.steps, result.summary().get("satisfaction"))
-    arrays, attrs = result.to_arrays()
-    return arrays, {**attrs, "kind": "s3_oneshot", "method": "s3_oneshot", "objectives": sorted(set(objectives) & {"sf", "sr"}), "wall_time_s": result.wall_time_s}
+        arrays, attrs = s3_oneshot_record(read_cage(cage), read_solid(model), read_samples(samples),
+                                          read_stress(stress) if stress is not None else None, objectives, config,
+                                          progress=lambda step, info: bar.update(step, total=float(info["total"])))
+    get_run_logger().info("s3_oneshot: %s", attrs.get("satisfaction"))
+    return arrays, attrs
 
 
-@pipeline_task("field_blend")
+@pipeline_task("field_blend", version="1")
 def field_blend_task(out: ArtifactRef, store: str, cage: ArtifactRef, field: ArtifactRef, planar: float
                      ) -> tuple[dict, dict]:
     """The field blended toward planar layers, (1 - planar) G + planar z: the last resort against collisions."""
-    arrays, attrs = read_field(read_cage(cage), field).blend(planar).to_arrays()
     get_run_logger().info("field blended toward planar layers: %.3g", planar)
-    return {**arrays, **{f"history/{k}": v for k, v in read_field_history(field).items()}}, attrs
+    return blend_record(read_cage(cage), read(field), planar)
 
 
-@pipeline_task("layers")
+@pipeline_task("layers", version="5")
 def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
                 config: LayerConfig) -> tuple[dict, dict]:
     """Isosurfaces of G trimmed by H <= 0, isovalues chosen for the thickness range, in print order."""
@@ -155,15 +145,34 @@ def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifact
     return layers.to_arrays()
 
 
-@pipeline_task("toolpaths")
+@pipeline_task("toolpaths", version="12")
 def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig,
                    machine: MachineProfile, t_max: float, fea: ArtifactRef | None = None) -> tuple[dict, dict]:
-    """Toolpaths on every layer, the machine program (IK, extrusion, collisions) and their metrics; with ``fea``
-    the infill can follow its stress."""
-    solid = read_solid(model)
+    """Toolpaths on every layer (shells, infill, order, bead widths and heights); with ``fea`` the infill can
+    follow its stress."""
     stress = stress_field(read_fea(fea), read_fea_spec(model).top_fraction) if fea is not None else None
-    tp, program, metrics, collisions = plan_print(read_layers(layers).meshes, platform_z=solid.platform_z,
-                                                  solid_H=solid.H, toolpath_cfg=config, profile=machine, t_max=t_max,
-                                                  stress=stress)
-    get_run_logger().info("toolpaths: %d waypoints, %d collisions", metrics["n_waypoints"], metrics.get("n_collisions", 0))
-    return encode_print(tp, program, metrics, collisions)
+    tp = plan_toolpaths(read_layers(layers).meshes, platform_z=read_solid(model).platform_z, toolpath_cfg=config,
+                        profile=machine, t_max=t_max, stress=stress)
+    get_run_logger().info("toolpaths: %d waypoints, %d paths", len(tp), int(tp.attrs.get("n_paths", 0)))
+    return tp.to_arrays()
+
+
+@pipeline_task("motion", version="1")
+def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: ArtifactRef, config: ToolpathConfig,
+                machine: MachineProfile) -> tuple[dict, dict]:
+    """The exact collision check of the head, travel lifts, tilts and reach, and the machine program (IK, extrusion)
+    with the print's metrics."""
+    solid = read_solid(model)
+    tp, program, metrics, collisions = plan_motion_of(read_toolpaths(toolpaths), platform_z=solid.platform_z,
+                                                      solid_H=solid.H, toolpath_cfg=config, profile=machine)
+    get_run_logger().info("motion: %d waypoints, %d collisions", metrics["n_waypoints"], metrics["n_collisions"])
+    return encode_motion(tp, program, metrics, collisions)
+
+
+@pipeline_task("program", version="1")
+def program_task(out: ArtifactRef, store: str, motion: ArtifactRef) -> tuple[dict, dict]:
+    """The machine program as G-code in the profile's dialect."""
+    _, program, _ = read_motion(motion)
+    text = gcode_bytes(program)
+    get_run_logger().info("program: %s G-code, %.1f MB", program.profile.gcode.dialect, len(text) / 1e6)
+    return {"gcode": np.frombuffer(text, np.uint8)}, {"dialect": program.profile.gcode.dialect, "bytes": len(text)}

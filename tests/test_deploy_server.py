@@ -116,7 +116,7 @@ def test_deployed_slice_runs_on_process_worker(tmp_path: Path, tmp_path_factory:
     # the run's outputs: the slice contract in out/slice, every step's artifact complete in the store
     run_dir = out / "slice"
     summary = json.loads((run_dir / "run.json").read_text())
-    assert [t["task"] for t in summary["tasks"]][:4] == ["model", "solid", "samples", "cage"]
+    assert [t["task"] for t in summary["tasks"]][:4] == ["model", "surface", "samples", "cage"]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["model"] == "torus" and metrics["n_layers"] > 0 and metrics["field.steps"] == 0
     # the run's provenance: in the folder, in metrics.json and in the store
@@ -124,7 +124,7 @@ def test_deployed_slice_runs_on_process_worker(tmp_path: Path, tmp_path_factory:
     assert metrics["provenance.inputs.spec_sha256"] == prov["inputs"]["spec_sha256"]
     assert ArtifactStore(store).exists(f"torus/provenance/{prov['digest']}")
     st = ArtifactStore(store)
-    for step in ("model", "solid", "samples", "cage", "field", "layers", "export"):
+    for step in ("model", "surface", "samples", "cage", "field", "layers", "toolpaths", "motion", "program", "export"):
         assert st.children(f"torus/{step}"), f"no complete {step} artifact in the store"
     exports = [st.attrs(f"torus/export/{d}")["out_dir"] for d in st.children("torus/export")]
     assert str(run_dir) in exports

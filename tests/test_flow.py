@@ -51,7 +51,7 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
     assert len(layers) == metrics["n_layers"] > 10
     for key in ("n_cage_elements", "sf.overhang_area_fraction", "sf.overhang_area_fraction_planar", "wall_s.cage",
                 "model_genus", "cage_genus", "toolpath_length_mm", "n_waypoints", "estimated_print_time_s",
-                "material_mm3", "collisions"):
+                "material_mm3", "n_collisions"):
         assert key in metrics, key
     # the identity field gives planar layers: the same overhang as planar, layers at increasing heights
     assert metrics["sf.overhang_area_fraction"] == pytest.approx(metrics["sf.overhang_area_fraction_planar"])
@@ -83,8 +83,8 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
 
     assert main(slice_cmd(small_part, out, cfg, "--objectives", "none", "--layer-height", "0.7")) == 0
     after = states(out)
-    assert [t for t, s in after.items() if s == "Cached"] == ["model", "solid", "samples", "cage", "field"]
-    assert [t for t, s in after.items() if s == "Completed"] == ["layers", "toolpaths", "export"]
+    assert [t for t, s in after.items() if s == "Cached"] == ["model", "surface", "samples", "cage", "field"]
+    assert [t for t, s in after.items() if s == "Completed"] == ["layers", "toolpaths", "motion", "program", "export"]
     assert json.loads((out / "metrics.json").read_text())["n_layers"] > metrics["n_layers"]
     assert len(list((out / "layers").glob("layer_*.ply"))) == json.loads((out / "metrics.json").read_text())["n_layers"]
 
@@ -153,12 +153,12 @@ def test_kill_and_resume(tmp_path, small_part):
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     # output to a pipe (not a terminal): one line as each computed step starts and ends, progress lines
     lines = rerun.stderr.splitlines()
-    for step in ("field", "layers", "toolpaths", "export"):
+    for step in ("field", "layers", "toolpaths", "motion", "program", "export"):
         assert f"{step}: started" in lines and any(ln.startswith(f"{step}: done in ") for ln in lines), step
     assert not any(ln.startswith("cage: started") for ln in lines)               # cached: no work, no line
     assert sum(ln.startswith("optimise: ") and "/60 (" in ln for ln in lines) >= 10, "\n".join(lines[-60:])
     st = states(out)
-    assert [st[t] for t in ("model", "solid", "samples", "cage")] == ["Cached"] * 4
+    assert [st[t] for t in ("model", "surface", "samples", "cage")] == ["Cached"] * 4
     assert st["field"] == "Completed"
     from storage import ArtifactStore
 
@@ -215,7 +215,7 @@ def test_default_objectives_are_print_head_aware_with_the_local_constraint(tmp_p
     # L_CA = 0 holds in the stored field, the pool sees no head collision, the program has none
     assert metrics["loss.ca_violating_pairs"] == 0 and metrics["loss.ca"] == 0
     assert metrics["loss.gc_colliding_pairs"] == 0 and "loss.gc" in metrics
-    assert metrics["collisions"] == 0
+    assert metrics["n_collisions"] == 0
     assert metrics["sf.overhang_area_fraction"] < metrics["sf.overhang_area_fraction_planar"]
     assert (out / "figures" / "collisions.png").is_file()
 
@@ -232,7 +232,7 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     keep = write_config(tmp_path / "keep.yaml", machine=str(machine))
     assert main(slice_cmd(small_part, out, keep, "--objectives", "sf")) == 0
     colliding = json.loads((out / "metrics.json").read_text())
-    assert colliding["collisions"] > 0 and colliding["field.blend_planar"] == 0.0
+    assert colliding["n_collisions"] > 0 and colliding["field.blend_planar"] == 0.0
     assert colliding["sf.overhang_area_fraction"] < colliding["sf.overhang_area_fraction_planar"]
 
     # the paper's fallback: one re-optimisation with larger harmonic weights and CA, reported after the first
@@ -241,9 +241,9 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     metrics = json.loads((out / "metrics.json").read_text())
     runs = json.loads((out / "run.json").read_text())["tasks"]
     assert [r["state"] for r in runs if r["task"] == "field"] == ["Cached", "Completed"]
-    assert metrics["collision_resolution.0.collisions"] == colliding["collisions"]
+    assert metrics["collision_resolution.0.collisions"] == colliding["n_collisions"]
     assert metrics["collision_resolution.1.stage"].startswith("re-optimised, harmonic x")
-    assert metrics["collisions"] == metrics["collision_resolution.1.collisions"]
+    assert metrics["n_collisions"] == metrics["collision_resolution.1.collisions"]
     assert metrics["field.objectives"] == "ca,sf"  # the retry adds the local collision constraint
 
     # the last resort: the smallest blend toward planar layers whose print is collision-free
@@ -252,14 +252,14 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     assert main(slice_cmd(small_part, out, blend, "--objectives", "sf")) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     tasks = [r["task"] for r in json.loads((out / "run.json").read_text())["tasks"]]
-    assert metrics["collisions"] == 0 and 0.0 < metrics["field.blend_planar"] <= 1.0
+    assert metrics["n_collisions"] == 0 and 0.0 < metrics["field.blend_planar"] <= 1.0
     assert tasks.count("field") == 1 and tasks.count("field_blend") >= 2
     # every field printed on the way is reported: the first is the colliding run above, the blends follow
     stages = sorted({int(k.split(".")[1]) for k in metrics if k.startswith("collision_resolution.")})
     rows = [{f: metrics[f"collision_resolution.{i}.{f}"] for f in ("stage", "collisions", "overhang_area_fraction")}
             for i in stages]
     assert len(rows) == 1 + tasks.count("field_blend")
-    assert rows[0]["stage"] == "optimised" and rows[0]["collisions"] == colliding["collisions"]
+    assert rows[0]["stage"] == "optimised" and rows[0]["collisions"] == colliding["n_collisions"]
     assert rows[0]["overhang_area_fraction"] == pytest.approx(colliding["sf.overhang_area_fraction"], abs=1e-12)
     assert all(r["stage"].startswith("planar blend t = ") for r in rows[1:])
     chosen = [r for r in rows if r["stage"].startswith(f"planar blend t = {metrics['field.blend_planar']:.4g}")]
@@ -310,12 +310,12 @@ def test_collisions_of_the_print_refine_the_collision_term(tmp_path, small_part)
     root = str(out / "store.zarr")
     store = ArtifactStore(root, create=False)
     ref = {step: ArtifactRef(root, f"lpart/{step}/{d}", d)
-           for step in ("model", "samples", "cage", "field", "toolpaths") for d in store.children(f"lpart/{step}")}
-    hits, witnesses = read_part_collisions(ref["toolpaths"])
+           for step in ("model", "samples", "cage", "field", "motion") for d in store.children(f"lpart/{step}")}
+    hits, witnesses = read_part_collisions(ref["motion"])
     assert len(hits) > 0 and np.isfinite(witnesses).all()
     neural = SliceConfig.from_yaml(cfg).neural
     refined = field_task(store=root, model=ref["model"], cage=ref["cage"], samples=ref["samples"], stress=None,
-                         objectives=["sf", "gc"], config=neural, refine_prints=[ref["toolpaths"]], warm_start=ref["field"])
+                         objectives=["sf", "gc"], config=neural, refine_prints=[ref["motion"]], warm_start=ref["field"])
     attrs = store.attrs(refined.path)
     record = attrs["refinement"]
     assert record["warm_start"] and record["hits"] == len(hits) and record["added_points"] > 0

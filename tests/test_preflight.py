@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
 import pytest
@@ -14,10 +13,8 @@ from conftest import l_part_mesh
 
 
 def refuse(capsys: pytest.CaptureFixture, argv: list[str], *expected: str) -> str:
-    """Run the CLI; it must exit 2 within 15 s with one error line containing every expected text."""
-    start = time.perf_counter()
+    """Run the CLI; it must exit 2 with one error line containing every expected text."""
     assert main(argv) == 2
-    assert time.perf_counter() - start < 15
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("neuralslicer: error: "), err
     for text in expected:
@@ -120,8 +117,13 @@ def test_too_many_layers_need_force(tmp_path, capsys):
     solid = implicit_solid(spec_for_file(scaled(tmp_path, 100.0), "z"))   # 1.6 m tall: 2,000 layers of 0.8 mm
     config = SliceConfig()
     assert check_layer_count(solid, config) == pytest.approx(2000, abs=2)
-    with pytest.raises(InputError, match="--force"):
+    with pytest.raises(InputError, match="or pass force"):   # the core names the flow's parameters...
         check_layer_count(solid, config, limit=1000)
+    from cli.options import cli_names
+
+    with pytest.raises(InputError, match="or pass --force") as err:   # ...the command line its flags
+        check_layer_count(solid, config, limit=1000, names=cli_names())
+    assert err.value.where == "--layer-height"
 
 
 def test_unknown_machine_profile(tmp_path, part, capsys):

@@ -23,7 +23,7 @@ from cli.main import main
 pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
 #: steps killed by SIGKILL as soon as they start: before the optimisation, inside it, after it
-KILL_AT = ("cage", "field", "toolpaths")
+KILL_AT = ("cage", "field", "motion")
 
 
 def comparable(out: Path) -> dict:
@@ -221,7 +221,7 @@ def test_concurrent_runs_share_one_store(case, tmp_path):
 
     shared = ArtifactStore(store, create=False)
     for model in ("lpart", "tpart"):
-        for step in ("model", "samples", "cage", "field", "layers", "toolpaths"):
+        for step in ("model", "samples", "cage", "field", "layers", "toolpaths", "motion", "program"):
             groups = shared.children(f"{model}/{step}")
             assert len(groups) == 1, (model, step, groups)  # written once, not twice
             arrays, _ = shared.read(f"{model}/{step}/{groups[0]}")  # complete and readable

@@ -75,14 +75,14 @@ def test_digest_uses_artifact_digests_and_model_fields():
 
 def test_two_stores_never_share_a_cache_record():
     # remote (fsspec) stores keep their Prefect records in one shared folder: the store is in the key
-    from tasks.steps import solid_task
+    from tasks.steps import surface_task
 
     model = ArtifactRef("memory://a/store.zarr", "part/model/abc", "abc")
-    key = lambda store: solid_task.pipeline.cache_key(None, {"store": store, "model": model})  # noqa: E731
+    key = lambda store: surface_task.pipeline.cache_key(None, {"store": store, "model": model})  # noqa: E731
     assert key("memory://a/store.zarr") == key("memory://a/store.zarr")
     assert key("memory://a/store.zarr") != key("memory://b/store.zarr")
     # the artifact itself is content-addressed: the same digest in either store
-    out = lambda store: solid_task.pipeline.output({"store": store, "model": model})  # noqa: E731
+    out = lambda store: surface_task.pipeline.output({"store": store, "model": model})  # noqa: E731
     assert out("memory://a/store.zarr").digest == out("memory://b/store.zarr").digest
 
 

@@ -263,6 +263,20 @@ def printed_fea(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, toolpat
     return verify_layers(solid, fea_spec, _field_lpd(field), tangent_at=printed_tangents(toolpaths), reference=reference)
 
 
+def printed_fea_record(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, toolpaths: Toolpaths,
+                       reference: FEAResult) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The FEA of the printed part (:func:`printed_fea`) as the store keeps it: its arrays like the isotropic FEA's (a
+    strength round samples its T from it) with ``turn/*`` (:func:`stress_turn`), the print's strain figures and how
+    far tau_max turned."""
+    printed = printed_fea(solid, fea_spec, field, toolpaths, reference)
+    arrays, attrs = printed["result"].to_arrays()
+    turn = stress_turn(reference, printed["result"], field, fea_spec.top_fraction)
+    figures = {k: float(printed[k]) for k in ("max_strain", "max_strain_p99", "max_displacement_mm")}
+    figures.update(tau_turn_median_deg=float(np.median(turn["tau_turn_deg"])),
+                   tau_turn_p90_deg=float(np.percentile(turn["tau_turn_deg"], 90)))
+    return {**arrays, **{f"turn/{k}": v for k, v in turn.items()}}, {**attrs, **figures}
+
+
 def stress_turn(reference: FEAResult, printed: FEAResult, field: ScalarField, top_fraction: float = 0.10
                 ) -> dict[str, np.ndarray]:
     """How the printed material turned tau_max, at the voxels of the isotropic FEA's top ``top_fraction`` (its T):

@@ -302,9 +302,19 @@ def gcode_lines(program: MachineProgram) -> list[str]:
     return reprap_lines(program)
 
 
-def write_gcode(path: str | Path, program: MachineProgram) -> Path:
-    """Write the program as G-code in its profile's dialect (atomic)."""
-    chunks = _linuxcnc_chunks(program) if program.profile.gcode.dialect == "linuxcnc" else _reprap_chunks(program)
+def gcode_chunks(program: MachineProgram) -> Iterator[bytes]:
+    """The program as G-code in its profile's dialect, a header and then one chunk per layer."""
+    return _linuxcnc_chunks(program) if program.profile.gcode.dialect == "linuxcnc" else _reprap_chunks(program)
+
+
+def gcode_bytes(program: MachineProgram) -> bytes:
+    """The program as G-code in its profile's dialect (the program step's output)."""
+    return b"".join(gcode_chunks(program))
+
+
+def write_gcode(path: str | Path, program: MachineProgram | bytes) -> Path:
+    """Write the program (or its G-code from :func:`gcode_bytes`) as G-code in its profile's dialect (atomic)."""
+    chunks = [program] if isinstance(program, bytes) else gcode_chunks(program)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             for chunk in chunks:

@@ -17,13 +17,14 @@ Every length in the spec (thickness, radius, wall, smooth_union, platform z, sur
 from __future__ import annotations
 
 import hashlib
-import json
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
+from neuralslicer.fileio import json_sha256
 from neuralslicer.errors import InputError
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.model.io import (
@@ -330,6 +331,25 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def load_model(path: str | Path, up: str | None = None, units: str | None = None) -> ModelSpec:
+    """The spec of a model file or spec YAML (:func:`spec_for_file`), with ``up`` / ``units`` where given overriding
+    the spec's own (left alone when None: a spec's ``up`` is never replaced by a default)."""
+    spec = spec_for_file(path, up or "z", units or "mm")
+    update = {k: v for k, v in (("up", up), ("units", units)) if v is not None and getattr(spec, k) != v}
+    if update:
+        source = spec.source
+        spec = spec.model_copy(update=update)
+        spec.source = source
+    return spec
+
+
+def model_name(spec: ModelSpec) -> str:
+    """A store-safe model name from the spec's source file (its folder's name for ``model.yaml`` / ``spec.yaml``)."""
+    source = Path(getattr(spec, "source", None) or spec.components[0].file)
+    stem = source.parent.name if source.stem in ("model", "spec") and source.parent.name else source.stem
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", stem) or "model"
+
+
 def spec_digest(spec: ModelSpec) -> str:
     """Content hash (sha256 hex) of the spec's normalised JSON with each file replaced by its bytes' hash.
 
@@ -339,5 +359,4 @@ def spec_digest(spec: ModelSpec) -> str:
     data = spec.model_dump(mode="json")
     for comp, model in zip(data["components"], spec.components):
         comp["file"] = {"sha256": file_sha256(Path(model.file)), "suffix": Path(model.file).suffix.lower()}
-    blob = json.dumps(data, sort_keys=True, separators=(",", ":")).encode()
-    return hashlib.sha256(blob).hexdigest()
+    return json_sha256(data)

@@ -70,6 +70,19 @@ HOLDER_ANCHOR_EVERY = 8
 HOLDER_MARGIN = 5.0
 
 
+
+def part_collisions(xyz: FloatArray, indices: IndexArray, kind: np.ndarray, locations: FloatArray | None = None
+                    ) -> tuple[FloatArray, FloatArray]:
+    """(hits (k,3), witnesses (k,3)) of a print: the waypoints whose head hit material or the platform and a point it
+    hit (NaN without locations); travel collisions are left out (the travel lift is the planner's answer to those,
+    the field cannot place the head there)."""
+    keep = np.asarray(kind) != TRAVEL_PATH
+    idx = np.asarray(indices, np.int64)
+    witnesses = (np.asarray(locations, np.float64).reshape(-1, 3)[keep] if locations is not None
+                 else np.full((int(keep.sum()), 3), np.nan))
+    return np.asarray(xyz, np.float64)[idx[keep]], witnesses
+
+
 def _may_reach(material: PrintedMaterial, xyz: FloatArray, axis: FloatArray, visible: IndexArray, nozzle: Nozzle,
                min_height: float) -> BoolArray:
     """Poses (n,) whose head may hold material: material laid before them, the head's lowest point

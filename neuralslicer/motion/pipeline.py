@@ -1,6 +1,7 @@
 """One entry point from curved layers to machine programs and files (SPEC steps 11-12)."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -28,7 +29,8 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
                toolpath_cfg: ToolpathConfig | None = None,
                profile: MachineProfile | str | None = None, t_max: float | None = None,
                stress: StressLike | None = None) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
-    """Toolpaths, machine program, metrics and the head's collisions for curved layers in print order.
+    """Toolpaths, machine program, metrics and the head's collisions for curved layers in print order: the
+    toolpaths step (:func:`plan_toolpaths`) then the motion step (:func:`plan_motion_of`), as the pipeline runs them.
 
     layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
     platform_z : platform height; solid_H : optional implicit solid (H < 0 inside) used to count
@@ -38,9 +40,23 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     widths are kept within the nozzle's bead widths). Metrics: estimated_print_time_s, toolpath_length_mm,
     n_waypoints, material_mm3, collisions, rotary statistics, timings.
     """
-    if profile is None or isinstance(profile, (str, Path)):
-        profile = load_profile(profile or "table_bc_linuxcnc")
-    cfg = toolpath_cfg or ToolpathConfig()
+    profile = _profile(profile)
+    tp = plan_toolpaths(layers, platform_z=platform_z, toolpath_cfg=toolpath_cfg, profile=profile, t_max=t_max,
+                        stress=stress)
+    return plan_motion_of(tp, platform_z=platform_z, solid_H=solid_H, toolpath_cfg=toolpath_cfg, profile=profile)
+
+
+def _profile(profile: MachineProfile | str | Path | None) -> MachineProfile:
+    """A machine profile from a profile, a shipped name or a YAML path (default ``table_bc_linuxcnc``)."""
+    return load_profile(profile or "table_bc_linuxcnc") if profile is None or isinstance(profile, (str, Path)) else profile
+
+
+def plan_toolpaths(layers: Sequence[trimesh.Trimesh], *, platform_z: float, toolpath_cfg: ToolpathConfig | None = None,
+                   profile: MachineProfile | str | None = None, t_max: float | None = None,
+                   stress: StressLike | None = None) -> Toolpaths:
+    """The toolpaths step: paths on every layer (:func:`plan_print` for the arguments), bead widths within the
+    nozzle's, thin beads held, short moves merged; what the motion step reports of them rides in ``attrs``."""
+    profile, cfg = _profile(profile), toolpath_cfg or ToolpathConfig()
     t0 = time.perf_counter()
     w_lo, w_hi = profile.nozzle.bead_width_mm
     if not w_lo <= cfg.line_width <= w_hi:
@@ -51,9 +67,22 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     np.clip(tp.width, w_lo, w_hi, out=tp.width)
     tp, beads = hold_beads(tp, profile.nozzle.bead_thickness_mm) if cfg.thin_beads == "carry" else (tp, None)
     tp, n_merged = merge_short_moves(tp, profile)
+    tp.attrs.update(held_beads=beads, n_merged_short_moves=n_merged, toolpaths_s=time.perf_counter() - t0)
+    return tp
+
+
+def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
+                   toolpath_cfg: ToolpathConfig | None = None, profile: MachineProfile | str | None = None
+                   ) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
+    """The motion step: the head clear of the platform, the exact collision check, travels lifted, axes tilted and
+    turned into reach, then the machine program (IK, extrusion) and the print's metrics (:func:`plan_print`)."""
+    profile, cfg = _profile(profile), toolpath_cfg or ToolpathConfig()
+    tp = dataclasses.replace(tp, attrs=dict(tp.attrs))   # the toolpaths step's figures leave its attrs, not the caller's
+    held, n_merged = tp.attrs.pop("held_beads", None), tp.attrs.pop("n_merged_short_moves", 0)
+    toolpaths_s = tp.attrs.pop("toolpaths_s", 0.0)
+    t1 = time.perf_counter()
     # near the platform a tilted head dips below it: turn those axes up first (exact, local), the check judges after
     tp, platform = clamp_to_platform(tp, profile.nozzle, platform_z, cfg.collision_tilt_deg)
-    t1 = time.perf_counter()
     # the beads as planned: one structure for the check, the lifts and the tilts (they move the nozzle, not the beads)
     material = PrintedMaterial.of_toolpaths(tp)
     report = check_collisions(tp, profile.nozzle, platform_z, material=material)
@@ -70,15 +99,10 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
     t4 = time.perf_counter()
     metrics = program_metrics(program)
-    metrics["travel_lift"] = lifted
-    metrics["axis_tilt"] = tilt
-    metrics["axis_reach"] = reach
-    metrics["axis_platform"] = platform
-    metrics["n_merged_short_moves"] = n_merged
-    metrics["beads"] = beads if beads is not None else bead_summary(tp, profile.nozzle.bead_thickness_mm)
-    metrics["n_waypoints"] = len(tp)
-    metrics["n_layers"] = tp.n_layers
-    metrics["n_paths"] = int(tp.attrs.get("n_paths", 0))
+    metrics.update(travel_lift=lifted, axis_tilt=tilt, axis_reach=reach, axis_platform=platform,
+                   n_merged_short_moves=n_merged,
+                   beads=held if held is not None else bead_summary(tp, profile.nozzle.bead_thickness_mm),
+                   n_waypoints=len(tp), n_layers=tp.n_layers, n_paths=int(tp.attrs.get("n_paths", 0)))
     metrics.update(report.summary())
     metrics.update({k: v for k, v in program.attrs.items() if k not in ("platform_z", "isovalues")})
     on = tp.path >= 0
@@ -88,7 +112,7 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
         h = np.asarray(solid_H(tp.xyz[on & tp.extrude]), np.float64)
         metrics["n_waypoints_outside_solid"] = int((h > 1e-3).sum())
         metrics["max_H_at_waypoints"] = float(h.max(initial=-np.inf))
-    metrics["timings_s"] = {"toolpaths": t1 - t0, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
+    metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
 

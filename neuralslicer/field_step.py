@@ -1,0 +1,79 @@
+"""The field step's record for each way of computing a field (SPEC steps 4-9 and the baselines): arrays and attrs
+as the store keeps them, so that the in-process pipeline and the Prefect tasks compute the same field."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
+from neuralslicer.cage import Cage
+from neuralslicer.fea.samples import StressSamples
+from neuralslicer.model.solid import Solid
+from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.samples import SurfaceSamples
+from neuralslicer.scalar_field import ScalarField
+
+Record = tuple[dict[str, np.ndarray], dict[str, Any]]
+Progress = Callable[[int, dict], None]
+
+
+def height_record(cage: Cage) -> Record:
+    """The height field G = z (no objectives: planar layers)."""
+    arrays, attrs = ScalarField.height(cage.vertices, cage.tets).to_arrays()
+    return arrays, {**attrs, "objectives": [], "steps": 0}
+
+
+def s3_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress: StressSamples | None, objectives: list[str],
+              config: S3DeformConfig, name: str, progress: Progress | None = None) -> Record:
+    """S3-Slicer's field: its iterative deformation of the model's tet mesh (when the model is one tet mesh, else
+    the cage), carried to the cage."""
+    from neuralslicer.baselines.s3_deform import s3_field
+
+    tet = next((m for m in solid.components if getattr(m, "tets", None) is not None), None)
+    result = s3_field(cage.vertices, cage.tets, samples,
+                      (tet.vertices, tet.tets) if tet is not None and len(solid.components) == 1 else None,
+                      stress, objectives, config, name, progress=progress)
+    return result.to_arrays()
+
+
+def s3_oneshot_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress: StressSamples | None,
+                      objectives: list[str], config: S3Config, progress: Progress | None = None) -> Record:
+    """The one-shot S3 variant's field: per-element rotations optimised in the deformed space, one ARAP solve."""
+    from neuralslicer.baselines.s3 import optimise_s3   # torch: only when a field is optimised
+
+    result = optimise_s3(cage.vertices, cage.tets, samples, stress, objectives, config, solid.platform_z,
+                         progress=progress)
+    arrays, attrs = result.to_arrays()
+    return arrays, {**attrs, "kind": "s3_oneshot", "method": "s3_oneshot",
+                    "objectives": sorted(set(objectives) & {"sf", "sr"}), "wall_time_s": result.wall_time_s}
+
+
+def blend_record(cage: Cage, field: Record, t: float) -> Record:
+    """The field blended toward planar layers, (1 - t) G + t z, keeping its optimisation history."""
+    arrays, attrs = ScalarField.from_arrays(cage.vertices, cage.tets, *field).blend(t).to_arrays()
+    history = {k: v for k, v in field[0].items() if k.startswith("history/")}
+    return {**arrays, **history}, attrs
+
+
+def field_of(cage: Cage, record: Record) -> ScalarField:
+    """The ScalarField of a field record."""
+    return ScalarField.from_arrays(cage.vertices, cage.tets, *record)
+
+
+def history_of(record: Record) -> dict[str, np.ndarray]:
+    """The optimisation's per-step history in a field record (empty for the height field)."""
+    return {k.split("/", 1)[1]: v for k, v in record[0].items() if k.startswith("history/")}
+
+
+def optimised_record(cage: Cage, samples: SurfaceSamples, stress: StressSamples | None, objectives: list[str],
+                     config: NeuralConfig, solid: Solid, **options: Any) -> Record:
+    """The neural field (``optimise_for_solid``'s options: refine, warm_start, user field, callbacks) as a record;
+    the height field without objectives."""
+    if not objectives:
+        return height_record(cage)
+    from neuralslicer.neural.optimise import optimise_for_solid   # torch: only when a field is optimised
+
+    return optimise_for_solid(solid, cage.vertices, cage.tets, samples, stress, objectives, config,
+                              **options).to_arrays()
