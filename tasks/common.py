@@ -35,7 +35,7 @@ STEP_VERSIONS = {
     "toolpaths": "11",
     "verify": "3",
     "fea_printed": "1",
-    "export": "5",
+    "export": "6",
 }
 
 
