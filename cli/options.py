@@ -55,7 +55,8 @@ def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output fold
     p.add_argument("--seed", type=int, default=None, help="random seed of the optimisation")
     p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
     p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
-    p.add_argument("--robot", action="store_true", help="also write robot_waypoints.csv/.json")
+    p.add_argument("--robot", action="store_true",
+                   help="also write robot_waypoints.csv/.json and compas_slicer's printpoints.json")
     p.add_argument("--collision-refinements", type=int, default=None,
                    help="refine the print head term around the collisions of the print and re-optimise from that "
                         "field, at most this many times (default 3)")

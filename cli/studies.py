@@ -151,19 +151,45 @@ def add_study_parser(sub: Any) -> None:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """Print the differences in parameters and metrics of two output folders."""
-    from neuralslicer.compare import compare_runs, print_comparison
+    """Print the differences in parameters and metrics of two output folders (a table, or JSON with --json);
+    exit 1 when they differ beyond the tolerances, 0 when not."""
+    import json
 
-    print_comparison(compare_runs(args.run_a, args.run_b, rtol=args.rtol, include_all=args.all),
-                     args.run_a, args.run_b)
-    return 0
+    from neuralslicer.compare import comparison_doc, compare_runs, print_comparison
+    from neuralslicer.fileio import to_json
+
+    ignore = tuple(args.ignore or ())
+    diffs = compare_runs(args.run_a, args.run_b, rtol=args.rtol, atol=args.atol, include_all=args.all, ignore=ignore)
+    doc = comparison_doc(diffs, args.run_a, args.run_b, args.rtol, args.atol, ignore)
+    if args.json:
+        print(json.dumps(to_json(doc), indent=2, allow_nan=False))
+    else:
+        print_comparison(diffs, args.run_a, args.run_b)
+    return 1 if doc["differ"] else 0
 
 
 def add_compare_parser(sub: Any) -> None:
     """Options of `neuralslicer compare RUN_A RUN_B`."""
-    p = sub.add_parser("compare", help="differences in parameters and metrics of two output folders")
+    from neuralslicer.compare import DEFAULT_ATOL, DEFAULT_RTOL
+
+    p = sub.add_parser(
+        "compare", help="differences in parameters and metrics of two output folders",
+        description="Compare two output folders: their parameters (provenance.json: inputs by hash, spec, config, "
+                    "seeds, package versions, device, git commit; and the provenance.* entries of metrics.json) and "
+                    "their metrics (metrics.json). Every entry counts, parameters too; only the time of the run, the "
+                    "command line, the record's digest and torch_threads are left out, and what --ignore names. "
+                    "Exit status: 0 when every entry is equal within the tolerances, 1 when any differs (or is in "
+                    "one run only), 2 when a folder cannot be read.")
     p.add_argument("run_a", help="output folder of a slice (or a branch of a study)")
     p.add_argument("run_b", help="another output folder")
-    p.add_argument("--rtol", type=float, default=0.0, help="numbers within this relative tolerance count as equal")
+    p.add_argument("--rtol", type=float, default=DEFAULT_RTOL,
+                   help="numbers a, b are equal when |a - b| <= max(rtol * max(|a|, |b|), atol) "
+                        f"(default {DEFAULT_RTOL:g})")
+    p.add_argument("--atol", type=float, default=DEFAULT_ATOL, help=f"absolute tolerance (default {DEFAULT_ATOL:g})")
+    p.add_argument("--ignore", action="append", metavar="KEY", default=[],
+                   help="leave out the key KEY, the keys under it (KEY.*) and the keys matching it as a glob "
+                        "pattern (repeatable); e.g. --ignore device --ignore provenance.device for runs on "
+                        "different machines")
+    p.add_argument("--json", action="store_true", help="print the comparison as JSON (schema in docs/outputs.md)")
     p.add_argument("--all", action="store_true", help="also list the entries that are equal")
     p.set_defaults(func=cmd_compare)

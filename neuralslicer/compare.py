@@ -1,6 +1,7 @@
 """`neuralslicer compare RUN_A RUN_B`: differences in parameters and metrics of two output folders."""
 from __future__ import annotations
 
+import fnmatch
 import json
 import math
 from pathlib import Path
@@ -15,6 +16,13 @@ from neuralslicer.provenance import flatten
 VOLATILE = ("recorded_at", "command", "digest", "provenance.device.torch_threads")
 
 
+#: the format of ``neuralslicer compare --json`` (``comparison_doc``)
+COMPARE_SCHEMA = "neuralslicer.compare/1"
+#: the tolerances the command line uses by default (``compare_runs`` itself compares exactly)
+DEFAULT_RTOL = 1e-6
+DEFAULT_ATOL = 1e-9
+
+
 class Difference(BaseModel):
     """One entry of a comparison."""
 
@@ -24,6 +32,7 @@ class Difference(BaseModel):
     b: Any = None
     equal: bool
     delta: float | None = Field(None, description="b - a for numbers")
+    only_in: str | None = Field(None, description="'a' or 'b' when the entry is in one run only")
 
 
 def _load_json(path: Path) -> dict[str, Any]:
@@ -52,33 +61,59 @@ def run_entries(run: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
     return params, metrics
 
 
-def _equal(a: Any, b: Any, rtol: float) -> bool:
-    """Equality with a relative tolerance for numbers."""
+def _is_number(v: Any) -> bool:
+    """An int or float that is not a bool."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def values_equal(a: Any, b: Any, rtol: float = 0.0, atol: float = 0.0) -> bool:
+    """Equality, numbers within ``|a - b| <= max(rtol * max(|a|, |b|), atol)`` (NaN equals NaN), lists element by
+    element, anything else exactly (a bool equals only a bool)."""
     if isinstance(a, bool) or isinstance(b, bool):
-        return a == b
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-        return a == b or math.isclose(a, b, rel_tol=rtol, abs_tol=0.0)
+        return type(a) is type(b) and a == b
+    if _is_number(a) and _is_number(b):
+        if math.isnan(a) or math.isnan(b):
+            return math.isnan(a) and math.isnan(b)
+        return a == b or math.isclose(a, b, rel_tol=rtol, abs_tol=atol)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(values_equal(x, y, rtol, atol) for x, y in zip(a, b))
     return a == b
 
 
-def compare_runs(run_a: str | Path, run_b: str | Path, rtol: float = 0.0, include_all: bool = False) -> list[Difference]:
-    """The entries of two runs' parameters and metrics that differ (all entries with include_all), sorted by key."""
+def ignored(key: str, patterns: tuple[str, ...]) -> bool:
+    """Whether a key is left out: it matches a glob pattern, or starts with one followed by '.'."""
+    return any(fnmatch.fnmatchcase(key, p) or key.startswith(p + ".") for p in patterns)
+
+
+def compare_runs(run_a: str | Path, run_b: str | Path, rtol: float = 0.0, include_all: bool = False,
+                 atol: float = 0.0, ignore: tuple[str, ...] = ()) -> list[Difference]:
+    """The entries of two runs' parameters and metrics that differ beyond the tolerances (``values_equal``; all
+    entries with include_all), sorted by key; keys matching ``ignore`` (``ignored``) and the volatile ones left out."""
     pa, ma = run_entries(run_a)
     pb, mb = run_entries(run_b)
     out = []
     for section, a, b in (("parameters", pa, pb), ("metrics", ma, mb)):
         for key in sorted(set(a) | set(b)):
-            if any(key == v or key.endswith("." + v) for v in VOLATILE):
+            if any(key == v or key.endswith("." + v) for v in VOLATILE) or ignored(key, ignore):
                 continue
             va, vb = a.get(key), b.get(key)
-            equal = key in a and key in b and _equal(va, vb, rtol)
+            equal = key in a and key in b and values_equal(va, vb, rtol, atol)
             if equal and not include_all:
                 continue
-            delta = None
-            if isinstance(va, (int, float)) and isinstance(vb, (int, float)) and not isinstance(va, bool):
-                delta = float(vb) - float(va)
-            out.append(Difference(section=section, key=key, a=va, b=vb, equal=equal, delta=delta))
+            delta = float(vb) - float(va) if _is_number(va) and _is_number(vb) else None
+            only_in = None if key in a and key in b else ("a" if key in a else "b")
+            out.append(Difference(section=section, key=key, a=va, b=vb, equal=equal, delta=delta, only_in=only_in))
     return out
+
+
+def comparison_doc(diffs: list[Difference], run_a: str | Path, run_b: str | Path, rtol: float, atol: float,
+                   ignore: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The JSON document of ``neuralslicer compare --json`` (schema ``COMPARE_SCHEMA``, docs/outputs.md)."""
+    n = {s: sum(not d.equal and d.section == s for d in diffs) for s in ("parameters", "metrics")}
+    return {"schema": COMPARE_SCHEMA, "run_a": str(run_a), "run_b": str(run_b),
+            "rtol": rtol, "atol": atol, "ignore": list(ignore),
+            "differ": any(n.values()), "n_differences": sum(n.values()), "n_by_section": n,
+            "differences": [d.model_dump() for d in diffs]}
 
 
 def _cell(value: Any) -> str:

@@ -47,7 +47,8 @@ class SliceConfig(BaseModel):
     alpha_deg: float = Field(45.0, gt=0, lt=90, description="self-supporting angle for the SF metrics")
     toolpath: ToolpathConfig = Field(default_factory=ToolpathConfig)
     machine: str = Field("table_bc_linuxcnc", description="machine profile: a shipped name or a YAML file")
-    robot: bool = Field(False, description="also write robot_waypoints.csv/.json (position, tool quaternion, extrusion)")
+    robot: bool = Field(False, description="also write robot_waypoints.csv/.json (position, tool quaternion, extrusion) "
+                        "and compas_slicer's printpoints.json")
     collision_refinements: int = Field(
         3, ge=0, le=8, description="while the print's exact check finds the head hitting the part or the platform "
         "(with the gc objective): refine L_GC's pool there and re-optimise from the field that printed it, at most "

@@ -22,6 +22,7 @@ from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.verify import PART_FIGURES, strain_gains
 from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
+from neuralslicer.gcode.printpoints import write_printpoints_json
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
 from neuralslicer.layers import Layers
@@ -414,7 +415,8 @@ def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProg
                         *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None
                         ) -> dict[str, Path]:
     """Write ``toolpaths/waypoints.csv``, ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
-    ``robot_waypoints.csv``/``.json`` (if ``robot``) and ``print_metrics.json`` under ``out_dir``."""
+    ``robot_waypoints.csv``/``.json`` and compas_slicer's ``printpoints.json`` (if ``robot``) and
+    ``print_metrics.json`` under ``out_dir``."""
     out = Path(out_dir)
     files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp),
              "gcode": write_gcode(out / "print.gcode", program if gcode is None else gcode)}
@@ -426,6 +428,7 @@ def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProg
         d = program.profile.extrusion.filament_diameter
         files["robot_csv"] = write_robot_csv(out / "robot_waypoints.csv", tp, d, profile=program.profile)
         files["robot_json"] = write_robot_json(out / "robot_waypoints.json", tp, d, profile=program.profile)
+        files["printpoints"] = write_printpoints_json(out / "printpoints.json", tp, program.profile)
     if metrics is not None:
         p = out / "print_metrics.json"
         write_text_atomic(p, json.dumps(metrics, indent=2, default=float))

@@ -81,19 +81,91 @@ def test_compare_rejects_a_folder_without_metrics(tmp_path: Path) -> None:
         compare_runs(a, tmp_path)
 
 
-def test_compare_command_prints_a_table_and_exits_0(tmp_path: Path) -> None:
-    """The command prints the differing keys with both values; exit 0; bad input exits 2."""
+def test_compare_command_prints_a_table_and_exits_1_when_runs_differ(tmp_path: Path) -> None:
+    """The command prints the differing keys with both values; exit 1 when they differ, 0 when not; bad input exits 2."""
     a = _run_folder(tmp_path / "a", {"n_layers": 10, "sf.overhang_area_fraction": 0.25})
     b = _run_folder(tmp_path / "b", {"n_layers": 10, "sf.overhang_area_fraction": 0.125})
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
     done = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(b)], cwd=REPO,
                           capture_output=True, text=True, env=env, timeout=120)
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 1, done.stderr
     assert "sf.overhang_area_fraction" in done.stdout and "0.25" in done.stdout and "0.125" in done.stdout
     assert "n_layers" not in done.stdout and "1 difference(s)" in done.stdout
+    same = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(a)], cwd=REPO,
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert same.returncode == 0 and "0 difference(s)" in same.stdout
     bad = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(tmp_path / "x")],
                          cwd=REPO, capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "neuralslicer: error:" in bad.stderr
+
+
+def _compare_json(capsys, *argv: str) -> tuple[int, dict]:
+    """Exit status and parsed stdout of `neuralslicer compare ... --json`, in process."""
+    from cli.main import main
+
+    code = main(["compare", *argv, "--json"])
+    return code, json.loads(capsys.readouterr().out)
+
+
+#: the fields of one entry of `compare --json`
+ENTRY_KEYS = {"section", "key", "a", "b", "equal", "delta", "only_in"}
+
+
+def test_compare_json_lists_the_differences_and_exits_1(tmp_path: Path, capsys) -> None:
+    """--json: the schema's fields with their types; metrics beyond the tolerance, a parameter that differs and an
+    entry in one run only all count (exit 1)."""
+    a = _run_folder(tmp_path / "a", {"n_layers": 10, "loss.total": 0.5, "only_a": 1.0, "flags": [1.0, 2.0]},
+                    {"config": {"alpha_deg": 45.0}, "seeds": {"samples.seed": 3}})
+    b = _run_folder(tmp_path / "b", {"n_layers": 12, "loss.total": 0.5, "flags": [1.0, 2.0]},
+                    {"config": {"alpha_deg": 45.0}, "seeds": {"samples.seed": 4}})
+    code, doc = _compare_json(capsys, str(a), str(b))
+    assert code == 1
+    assert set(doc) == {"schema", "run_a", "run_b", "rtol", "atol", "ignore", "differ", "n_differences",
+                        "n_by_section", "differences"}
+    assert doc["schema"] == "neuralslicer.compare/1" and (doc["run_a"], doc["run_b"]) == (str(a), str(b))
+    assert doc["rtol"] == 1e-6 and doc["atol"] == 1e-9 and doc["ignore"] == []
+    assert doc["differ"] is True and doc["n_differences"] == 3 == len(doc["differences"])
+    assert doc["n_by_section"] == {"parameters": 1, "metrics": 2}
+    entries = {(d["section"], d["key"]): d for d in doc["differences"]}
+    assert all(set(d) == ENTRY_KEYS for d in doc["differences"])
+    layers = entries[("metrics", "n_layers")]
+    assert (layers["a"], layers["b"], layers["delta"], layers["equal"], layers["only_in"]) == (10, 12, 2.0, False, None)
+    assert entries[("metrics", "only_a")] == {"section": "metrics", "key": "only_a", "a": 1.0, "b": None,
+                                              "equal": False, "delta": None, "only_in": "a"}
+    seed = entries[("parameters", "seeds.samples.seed")]
+    assert (seed["a"], seed["b"], seed["equal"]) == (3, 4, False)
+    # --all lists the equal entries too, marked equal; they do not count
+    code, everything = _compare_json(capsys, str(a), str(b), "--all")
+    assert code == 1 and everything["n_differences"] == 3
+    assert {d["key"] for d in everything["differences"] if d["equal"]} == {"loss.total", "flags", "config.alpha_deg"}
+
+
+def test_compare_exits_0_within_the_tolerances(tmp_path: Path, capsys) -> None:
+    """Numbers within --rtol/--atol are equal (exit 0, no entries); tighter tolerances make them differ; --ignore
+    leaves keys out of the comparison and of the exit status."""
+    a = _run_folder(tmp_path / "a", {"loss.total": 0.5, "tiny": 0.0, "curve": [1.0, 2.0]},
+                    {"device": {"hostname": "a"}})
+    b = _run_folder(tmp_path / "b", {"loss.total": 0.5 * (1 + 1e-8), "tiny": 1e-12, "curve": [1.0, 2.0 + 1e-9]},
+                    {"device": {"hostname": "b"}})
+    code, doc = _compare_json(capsys, str(a), str(b), "--ignore", "device")
+    assert code == 0 and doc["differ"] is False and doc["differences"] == [] and doc["ignore"] == ["device"]
+    code, doc = _compare_json(capsys, str(a), str(b))
+    assert code == 1 and [d["key"] for d in doc["differences"]] == ["device.hostname"]
+    code, doc = _compare_json(capsys, str(a), str(b), "--ignore", "device*", "--rtol", "0", "--atol", "0")
+    assert code == 1 and {d["key"] for d in doc["differences"]} == {"loss.total", "tiny", "curve"}
+    code, doc = _compare_json(capsys, str(a), str(b), "--ignore", "device", "--rtol", "1e-9", "--atol", "1e-11")
+    assert code == 1 and {d["key"] for d in doc["differences"]} == {"loss.total"}
+
+
+def test_values_equal_tolerances() -> None:
+    """|a - b| <= max(rtol * max(|a|, |b|), atol); NaN equals NaN; lists element-wise; bools and strings exactly."""
+    from neuralslicer.compare import values_equal
+
+    assert values_equal(1.0, 1.0 + 1e-7, rtol=1e-6) and not values_equal(1.0, 1.0 + 1e-5, rtol=1e-6)
+    assert values_equal(0.0, 1e-10, atol=1e-9) and not values_equal(0.0, 1e-10, rtol=0.5)
+    assert values_equal(float("nan"), float("nan")) and not values_equal(float("nan"), 1.0, atol=1e9)
+    assert values_equal([1.0, [2.0]], [1.0, [2.0 + 1e-9]], atol=1e-8) and not values_equal([1.0], [1.0, 2.0])
+    assert not values_equal(True, 1) and values_equal("x", "x") and not values_equal("x", "y", atol=1.0)
 
 
 def test_tables_written_to_a_file_or_log_are_not_cut(monkeypatch, capsys) -> None:

@@ -113,6 +113,10 @@ def test_linuxcnc_rs274_accepts_the_program(tmp_path):
     canon = out.read_text()
     assert res.returncode == 0, res.stdout + res.stderr
     assert "PROGRAM_END" in canon
+    # the print hosts' totals of the header are comments the interpreter reads as such
+    for key in ("TIME:", "Filament used: ", "LAYER_COUNT:", "estimated printing time = ", "filament used [mm] = ",
+                "filament used [g] = ", "total layers count = "):
+        assert re.search(r'COMMENT\("' + re.escape(key) + r'[^"]+"\)', canon), key
     feeds = re.findall(r"STRAIGHT_(?:FEED|TRAVERSE)\(([^)]*)\)", canon)
     assert len(feeds) == len(prog)
     vals = np.array([[float(v) for v in f.split(",")[:6]] for f in feeds])      # X Y Z A B C
@@ -418,3 +422,36 @@ def test_the_header_carries_what_print_hosts_show(tmp_path, curved):
     assert t == round(float(key(r"est\. time ([\d.]+) s")))
     h, m, s = map(int, re.search(r"estimated printing time \(normal mode\) = (\d+)h (\d+)m (\d+)s", head).groups())
     assert 3600 * h + 60 * m + s == t
+
+
+def test_the_linuxcnc_header_carries_the_same_totals(tmp_path, curved):
+    """LinuxCNC dialect: the RepRap header's time, filament length and mass and layer count, as parenthesised
+    comments (no semicolons, no nested brackets), equal to what the file holds."""
+    tp, _, _ = curved
+    profile = load_profile("table_bc_linuxcnc")
+    program = plan_motion(tp, profile, platform_z=0.0)
+    path = write_gcode(tmp_path / "print.ngc", program)
+    text = path.read_text()
+    head = text[:text.index("G21")]
+    keys = [ln for ln in head.splitlines() if re.match(r"\((TIME|Filament used|LAYER_COUNT|estimated printing|"
+                                                        r"filament used|total layers)", ln)]
+    assert len(keys) == 7
+    assert all(ln.endswith(")") and ln.count("(") == 1 == ln.count(")") and ";" not in ln for ln in keys)
+    key = lambda pattern: re.search(pattern, head).group(1)  # noqa: E731
+    moves = parse_gcode(path, axes="".join(program.axis_letters))
+    filament = np.diff(moves.axes[program.axis_letters[5]])[program.kind[1:] == PRINT].sum()
+    assert float(key(r"\(filament used \[mm\] = ([\d.]+)\)")) == pytest.approx(filament, abs=0.01)
+    assert float(key(r"\(Filament used: ([\d.]+)m\)")) == pytest.approx(filament / 1000, abs=1e-5)
+    grams = filament * np.pi * 0.25 * profile.extrusion.filament_diameter ** 2 * 1.24e-3
+    assert float(key(r"\(filament used \[g\] = ([\d.]+)\)")) == pytest.approx(grams, abs=0.01)
+    n_layers = len(re.findall(r"^\(LAYER \d+ / ", text, flags=re.M))
+    assert int(key(r"\(LAYER_COUNT:(\d+)\)")) == n_layers == int(key(r"\(total layers count = (\d+)\)")) > 1
+    t = int(key(r"\(TIME:(\d+)\)"))
+    assert t == round(float(key(r"est\. time ([\d.]+) s")))
+    h, m, s = map(int, re.search(r"\(estimated printing time = (\d+)h (\d+)m (\d+)s\)", head).groups())
+    assert 3600 * h + 60 * m + s == t
+    # the same totals as the RepRap header of the same program
+    reprap = write_gcode(tmp_path / "print.gcode", plan_motion(tp, load_profile("reprap_5axis"), platform_z=0.0))
+    rhead = reprap.read_text().split("G21", 1)[0]
+    assert re.search(r";LAYER_COUNT:(\d+)", rhead).group(1) == str(n_layers)
+    assert float(re.search(r"; filament used \[mm\] = ([\d.]+)", rhead).group(1)) == pytest.approx(filament, abs=0.01)

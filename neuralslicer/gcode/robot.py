@@ -191,6 +191,16 @@ def blend_radii(tp: Toolpaths, wait: FloatArray, width_fraction: float = BLEND_W
     return r
 
 
+def move_material(tp: Toolpaths, filament_diameter: float) -> tuple[FloatArray, FloatArray]:
+    """Volume (n,) in mm^3 and filament (n,) in mm of the move arriving at each waypoint (0 where it does not
+    deposit): length x mean thickness x mean width of its ends."""
+    seg = tp.segment_lengths()
+    t = np.concatenate([[0.0], 0.5 * (tp.thickness[1:] + tp.thickness[:-1])])
+    w = np.concatenate([[0.0], 0.5 * (tp.width[1:] + tp.width[:-1])])
+    vol = np.where(tp.extrude, seg * t * w, 0.0)
+    return vol, vol / (np.pi * 0.25 * filament_diameter ** 2)
+
+
 def robot_table(tp: Toolpaths, filament_diameter: float | None = None, *,
                 profile: MachineProfile | None = None) -> np.ndarray:
     """(n, 23) table in ``ROBOT_COLUMNS`` order (``COLUMN_NOTES``); speeds and waits from ``profile``
@@ -199,11 +209,7 @@ def robot_table(tp: Toolpaths, filament_diameter: float | None = None, *,
     d = profile.extrusion.filament_diameter if filament_diameter is None else filament_diameter
     frames = tool_frames(tp.axis, tp.xyz, tp.extrude)
     q = matrix_to_quaternion(frames)
-    seg = tp.segment_lengths()
-    t = np.concatenate([[0.0], 0.5 * (tp.thickness[1:] + tp.thickness[:-1])])
-    w = np.concatenate([[0.0], 0.5 * (tp.width[1:] + tp.width[:-1])])
-    vol = np.where(tp.extrude, seg * t * w, 0.0)
-    fil = vol / (np.pi * 0.25 * d ** 2)
+    vol, fil = move_material(tp, d)
     wait = wait_times(tp, profile)
     return np.column_stack([np.arange(len(tp)), tp.layer, tp.path, tp.xyz, q, tp.extrude.astype(float),
                             vol, fil, tp.thickness, tp.width, frames[:, :, 0], tp.thickness,

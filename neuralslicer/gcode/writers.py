@@ -178,18 +178,35 @@ def _summary_comment(program: MachineProgram, met: dict, open_c: str, close_c: s
     ] + [f"{open_c}{line}{close_c}" for line in _machine_comment(program)]
 
 
-def host_comments(program: MachineProgram, met: dict) -> list[str]:
-    """The keys print hosts show before a print (estimated time, filament length and mass, layer count; ``met``: the
-    program's totals), in the Cura spellings (OctoPrint plugins, Duet Web Control) and the PrusaSlicer ones
-    (PrusaLink, Duet)."""
+def host_totals(program: MachineProgram, met: dict) -> tuple[int, float, float, int]:
+    """(estimated time in whole s, filament mm, filament g, layer count) of a program with totals ``met``
+    (``program_metrics``): what print hosts show before a print."""
     t = int(round(met["estimated_print_time_s"]))
     mm = met["filament_mm"]
     grams = mm * filament_area(program.profile) / 1000.0 * program.profile.extrusion.filament_density_g_cm3
     n_layers = int(np.count_nonzero(np.diff(program.layer)) + 1) if len(program) else 0
+    return t, mm, grams, n_layers
+
+
+def host_comments(program: MachineProgram, met: dict) -> list[str]:
+    """The keys print hosts show before a print (estimated time, filament length and mass, layer count; ``met``: the
+    program's totals), in the Cura spellings (OctoPrint plugins, Duet Web Control) and the PrusaSlicer ones
+    (PrusaLink, Duet)."""
+    t, mm, grams, n_layers = host_totals(program, met)
     return [";FLAVOR:RepRap", f";TIME:{t}", f";Filament used: {mm / 1000:.5f}m", f";LAYER_COUNT:{n_layers}",
             f"; estimated printing time (normal mode) = {t // 3600}h {t // 60 % 60}m {t % 60}s",
             f"; filament used [mm] = {mm:.2f}", f"; filament used [g] = {grams:.2f}",
             f"; total layers count = {n_layers}"]
+
+
+def linuxcnc_host_comments(program: MachineProgram, met: dict) -> list[str]:
+    """The totals of ``host_comments`` as RS274/NGC comments: the same keys in parentheses, without the flavour and
+    the nested "(normal mode)" (LinuxCNC comments do not nest)."""
+    t, mm, grams, n_layers = host_totals(program, met)
+    return [f"(TIME:{t})", f"(Filament used: {mm / 1000:.5f}m)", f"(LAYER_COUNT:{n_layers})",
+            f"(estimated printing time = {t // 3600}h {t // 60 % 60}m {t % 60}s)",
+            f"(filament used [mm] = {mm:.2f})", f"(filament used [g] = {grams:.2f})",
+            f"(total layers count = {n_layers})"]
 
 
 def _linuxcnc_body(program: MachineProgram, start: int, stop: int) -> bytes:
@@ -219,7 +236,9 @@ def _linuxcnc_chunks(program: MachineProgram) -> Iterator[bytes]:
     le = program.axis_letters[5]
     n = len(program)
     times = schedule(program.machine, program.time_s, program.profile.feeds)
-    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, program_metrics(program, times), "", "")]
+    met = program_metrics(program, times)
+    head = ["(" + s.strip("()") + ")" for s in _summary_comment(program, met, "", "")]
+    head += linuxcnc_host_comments(program, met)
     head += ["G21 G90 G17 G40 G49 G80 G94", "G64 P0.01", f"G92 {le}0"] + list(g.header)
     yield _text(head)
     yield _linuxcnc_body(program, 0, min(1, n))
