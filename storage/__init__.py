@@ -1,7 +1,7 @@
 """Artifact store: zarr groups written atomically, mesh files, checkpoints and cache keys."""
 from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
 from storage.keys import canonical, digest
-from storage.store import ArtifactRef, ArtifactStore
+from storage.store import ArtifactRef, ArtifactStore, groups_used
 
 __all__ = [
     "ArtifactRef",
@@ -9,6 +9,7 @@ __all__ = [
     "atomic_path",
     "canonical",
     "digest",
+    "groups_used",
     "write_json_atomic",
     "write_text_atomic",
 ]
