@@ -9,6 +9,7 @@ import socket
 import threading
 import time
 import uuid
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 import zarr
 
 from neuralslicer.fileio import to_json
+from storage.layout import chunk_shape, compressor, group_dimensions, group_kind
 
 COMPLETE = "_complete"
 STAGING = "_staging"
@@ -40,6 +42,12 @@ class ArtifactRef:
     def model(self) -> str:
         """The model name (first component of the group path)."""
         return self.path.split("/", 1)[0]
+
+
+def groups_used(refs: Mapping[str, ArtifactRef | None]) -> dict[str, str]:
+    """The group path of each step a run used (the steps it skipped left out): what run.json can list so that a
+    reader opens the run's arrays (``xarray.open_zarr(store, group=path)``) without searching the store."""
+    return {step: ref.path for step, ref in refs.items() if ref is not None}
 
 
 class ArtifactStore:
@@ -83,10 +91,10 @@ class ArtifactStore:
         """
         attrs = {**to_json(dict(attrs or {})), "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         if not self.is_local:
-            self._write_group(path, arrays, attrs)
+            self._write_group(path, arrays, attrs, group_kind(path))
             return
         staging = f"{STAGING}/{uuid.uuid4().hex}"
-        self._write_group(staging, arrays, attrs)
+        self._write_group(staging, arrays, attrs, group_kind(path))
         src, dst = Path(self.root, staging), Path(self.root, path)
         if dst.exists():  # replacing: readers see the old or the new group, never a mix
             trash = Path(self.root, STAGING, f"old-{uuid.uuid4().hex}")
@@ -98,15 +106,21 @@ class ArtifactStore:
                 zarr.open_group(self.root, mode="a", path=path.rsplit("/", 1)[0])
             os.replace(src, dst)
 
-    def _write_group(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
-        """Write arrays then attributes, the completion flag last."""
+    def _write_group(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any], kind: str) -> None:
+        """Write arrays (named dimensions of a group of this ``kind``, chosen chunks and codecs) then attributes,
+        then the group's consolidated metadata, the completion flag last."""
         group = zarr.open_group(self.root, mode="w", path=path)
-        for name, value in arrays.items():
-            data = np.ascontiguousarray(value)
-            if data.dtype == object:
+        data = {name: np.ascontiguousarray(value) for name, value in arrays.items()}
+        dims = group_dimensions(kind, {name: d.shape for name, d in data.items()})
+        for name, d in data.items():
+            if d.dtype == object:
                 raise TypeError(f"array {name!r} has dtype object")
-            group.create_array(name, data=data, overwrite=True)
+            group.create_array(name, data=d, dimension_names=dims[name], chunks=chunk_shape(d.shape, d.dtype.itemsize),
+                               compressors=compressor(d.dtype), overwrite=True)
         group.attrs.update({**attrs, COMPLETE: False})
+        with warnings.catch_warnings():  # zarr: consolidated metadata is not yet in the v3 specification
+            warnings.simplefilter("ignore", zarr.errors.ZarrUserWarning)
+            group = zarr.consolidate_metadata(self.root, path=path)
         group.attrs[COMPLETE] = True
 
     def read(self, path: str, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

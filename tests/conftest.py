@@ -76,6 +76,22 @@ def fast_config(**overrides: object) -> dict:
     return cfg
 
 
+@pytest.fixture(scope="session")
+def planar_run(prefect_server: None, small_part: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One tiny slice of the L part for the whole session (planar field, ``--objectives none``, fast_config): its
+    output folder, the store at ``store.zarr``. Read it only: a test that reruns or changes a run makes its own."""
+    import yaml
+
+    from cli.main import main
+
+    root = tmp_path_factory.mktemp("planar_run")
+    cfg = root / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump(fast_config()))
+    out = root / "run"
+    assert main(["slice", str(small_part), "--out", str(out), "--config", str(cfg), "--objectives", "none"]) == 0
+    return out
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     """A seeded random generator."""

@@ -1,11 +1,18 @@
-"""The artifact store: atomic groups, completion flags, checkpoints, cache keys."""
+"""The artifact store: atomic groups, completion flags, checkpoints, cache keys, and a layout people can open
+(named dimensions, chosen chunks and codecs, consolidated groups, docs/store.md)."""
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zarr
+from zarr.codecs import BloscCodec
 
-from storage import ArtifactRef, ArtifactStore, atomic_path, digest
+from storage import ArtifactRef, ArtifactStore, atomic_path, digest, groups_used
+from storage.layout import CHUNK_BYTES, DIMENSIONS, chunk_shape, dimension_names, group_dimensions
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def test_write_read_roundtrip_with_nested_names(tmp_path):
@@ -142,3 +149,111 @@ def test_reading_never_creates_a_store(tmp_path):
     st = ArtifactStore(tmp_path / "s.zarr")                       # a writer creates it
     st.write("m/x/1", {"a": np.arange(3)}, {"k": 1})
     assert ArtifactStore(tmp_path / "s.zarr", create=False).read("m/x/1")[1]["k"] == 1
+
+
+def test_arrays_carry_named_dimensions_chosen_chunks_and_codecs_in_a_consolidated_group(tmp_path):
+    store = ArtifactStore(tmp_path / "s.zarr")
+    rows = CHUNK_BYTES // 24 * 2 + 5                     # a float64 (n, 3) array of a little over two chunks
+    store.write("m/cage/abc", {"vertices": np.zeros((rows, 3)), "tets": np.zeros((7, 4), np.int64)}, {})
+    group = zarr.open_group(store.root, mode="r", path="m/cage/abc")
+    assert group.metadata.consolidated_metadata is not None
+    vertices, tets = group["vertices"], group["tets"]
+    assert vertices.metadata.dimension_names == ("vertex", "spatial")
+    assert tets.metadata.dimension_names == ("tet", "tet_corner")
+    assert vertices.chunks == (CHUNK_BYTES // 24, 3) and tets.chunks == (7, 4)      # whole rows, ~CHUNK_BYTES
+    blosc = [c for c in vertices.metadata.codecs if isinstance(c, BloscCodec)]
+    assert blosc and blosc[0].cname.value == "zstd" and blosc[0].shuffle.value == "bitshuffle"
+    assert store.read("m/cage/abc")[0]["vertices"].shape == (rows, 3)
+
+
+def test_dimension_names_from_the_table_with_fallbacks():
+    assert dimension_names("model", "c2_segments", 3) == ("c2_segment", "endpoint", "spatial")
+    assert dimension_names("verify", "angles/printed", 1) == ("printed_segment",)
+    assert dimension_names("motion", "program/machine", 2) == ("move", "machine_axis")
+    assert dimension_names("field", "weights/net.0.weight", 2) == ("net.0.weight_dim_0", "net.0.weight_dim_1")
+    assert dimension_names("nothing", "x", 1) == ("x_dim_0",)
+    assert dimension_names("cage", "vertices", 1) == ("vertices_dim_0",)    # another rank than the table's
+    assert chunk_shape((), 8) == () and chunk_shape((0, 3), 8) == (1, 3) and chunk_shape((5, 0), 8) == (5, 1)
+
+
+def test_a_dimension_name_keeps_one_size_per_group():
+    dims = group_dimensions("field", {"G": (5,), "history/total": (3,), "history/lr": (4,), "history/sf": (3,)})
+    assert dims == {"G": ("vertex",), "history/total": ("step",), "history/lr": ("lr_step",),
+                    "history/sf": ("step",)}
+
+
+def test_no_dimension_is_named_after_an_array_of_its_group():
+    # xarray turns an array named like one of its dimensions into a coordinate (or refuses it)
+    for kind, table in DIMENSIONS.items():
+        for pattern, dims in table.items():
+            parent = pattern.rpartition("/")[0]
+            leaves = {p.rpartition("/")[2] for p in table if p.rpartition("/")[0] == parent}
+            assert not set(dims) & leaves, (kind, pattern)
+
+
+def test_groups_written_before_dimension_names_still_read(tmp_path):
+    store = ArtifactStore(tmp_path / "s.zarr")
+    old = zarr.open_group(store.root, mode="w", path="m/field/old")     # zarr's defaults, no names, not consolidated
+    old.create_array("G", data=np.arange(4.0))
+    old.create_array("history/total", data=np.ones(2))
+    old.attrs.update({"kind": "height", "_complete": True})
+    assert store.exists("m/field/old") and store.children("m/field") == ["old"]
+    arrays, attrs = store.read("m/field/old")
+    assert np.array_equal(arrays["G"], np.arange(4.0)) and np.array_equal(arrays["history/total"], np.ones(2))
+    assert attrs["kind"] == "height"
+    assert list(store.read("m/field/old", ["G"])[0]) == ["G"]
+
+
+def test_a_written_group_opens_with_xarray(tmp_path):
+    import xarray as xr
+
+    store = ArtifactStore(tmp_path / "s.zarr")
+    store.write("m/field/abc", {"G": np.arange(5.0), "lpd": np.ones((7, 3)), "history/total": np.ones(3)}, {"k": 1})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        by_path = xr.open_zarr(store.root, group="m/field/abc", consolidated=False)
+        own = xr.open_zarr(f"{store.root}/m/field/abc", group="history", consolidated=True)   # its own metadata
+    assert by_path["G"].dims == ("vertex",) and by_path["lpd"].dims == ("tet", "spatial") and by_path.attrs["k"] == 1
+    assert dict(by_path.sizes) == {"vertex": 5, "tet": 7, "spatial": 3} and own["total"].dims == ("step",)
+
+
+def test_groups_used_lists_the_steps_a_run_used():
+    refs = {"model": ArtifactRef("/s", "m/model/a", "a"), "fea": None, "field": ArtifactRef("/s", "m/field/b", "b")}
+    assert groups_used(refs) == {"model": "m/model/a", "field": "m/field/b"}
+
+
+def test_docs_describe_every_array_and_dimension():
+    text = re.sub(r"```.*?```", "", (REPO / "docs" / "store.md").read_text(), flags=re.S)   # prose and tables
+    names = set(re.findall(r"`([^`\n]+)`", text))
+    for kind, table in DIMENSIONS.items():
+        assert kind in names, kind
+        for pattern, dims in table.items():
+            assert pattern in names, (kind, pattern)
+            assert all(d in names for d in dims), (kind, pattern, dims)
+
+
+@pytest.mark.slow
+def test_a_run_opens_with_xarray_by_named_dimensions(planar_run):
+    import xarray as xr
+
+    store = planar_run / "store.zarr"
+    st = ArtifactStore(store, create=False)
+    cage_path, field_path, print_path = (f"lpart/{step}/{st.children(f'lpart/{step}')[0]}"
+                                         for step in ("cage", "field", "motion"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cage = xr.open_zarr(store, group=cage_path, consolidated=False)
+        field = xr.open_zarr(store, group=field_path, consolidated=False)
+        tree = xr.open_datatree(store / print_path, engine="zarr", consolidated=True)   # the group's own metadata
+    assert field["G"].dims == ("vertex",) and field["lpd"].dims == ("tet", "spatial")
+    assert field.sizes["vertex"] == cage.sizes["vertex"] == cage.attrs["n_vertices"]
+    assert field.sizes["tet"] == cage.sizes["tet"] == cage.attrs["n_elements"]
+    # the planar field is the height: G = z of the cage vertices; its LPD is +z
+    np.testing.assert_array_equal(field["G"].values, cage["vertices"].isel(spatial=2).values)
+    np.testing.assert_allclose(field["lpd"].values, np.tile([0.0, 0.0, 1.0], (field.sizes["tet"], 1)), atol=1e-9)
+    waypoints, program = tree["toolpaths"].to_dataset(), tree["program"].to_dataset()
+    assert waypoints["xyz"].dims == ("waypoint", "spatial") and waypoints["layer"].dims == ("waypoint",)
+    assert waypoints.sizes["waypoint"] == tree.attrs["metrics"]["n_waypoints"]
+    assert program["machine"].dims == ("move", "machine_axis") and program.sizes["machine_axis"] == 5
+    assert program.sizes["move"] >= waypoints.sizes["waypoint"]
+    assert int(waypoints["layer"].max()) < st.attrs(f"lpart/layers/{st.children('lpart/layers')[0]}")["n_layers"]
