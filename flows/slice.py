@@ -22,7 +22,7 @@ from neuralslicer.pipeline import FieldInputs, Printed, run_chain
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.toolpath.config import ToolpathConfig
 from flows.settings import artifact_key
-from storage import ArtifactRef, ArtifactStore, write_json_atomic
+from storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
 from tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
 from tasks.common import run_step
 from tasks.export import export_task
@@ -233,6 +233,7 @@ def slice_flow(
         "all_cached": all(s == "Cached" for _, s in run.states),
         "wall_s": time.perf_counter() - start,
         "store": store,
+        "groups": groups_used(run.refs),   # the group each step of the kept print wrote or read (docs/store.md)
         "out_dir": out_dir,
     }
     write_json_atomic(Path(out_dir) / "run.json", summary)

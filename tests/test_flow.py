@@ -68,6 +68,11 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
     # the flow run is named after the model and the output folder, and publishes the report
     run = json.loads((out / "run.json").read_text())
     assert run["flow_run_name"] == "slice-lpart-run" and run["report_artifact"] == "slice-lpart"
+    # run.json names the group of every step, and each is in the store
+    from storage import ArtifactStore
+
+    assert {"model", "surface", "samples", "cage", "field", "layers", "toolpaths", "motion", "program"} <= set(run["groups"])
+    assert all(ArtifactStore(run["store"], create=False).exists(g) for g in run["groups"].values())
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey, ArtifactFilterType
 
