@@ -14,9 +14,7 @@ $(STAMP): pyproject.toml constraints.txt
 	@command -v $(PYTHON) >/dev/null || { echo "make: $(PYTHON) not found (Python 3.11 is required; set PYTHON=...)"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	# compat mode: the repo root goes on sys.path, so a stray folder named like a package (e.g. Dask's
-	# storage/ spill folder) cannot shadow ours
-	$(BIN)/pip install --quiet -c constraints.txt --config-settings editable_mode=compat -e ".[dev,dask]"
+	$(BIN)/pip install --quiet -c constraints.txt -e ".[dev,dask]"
 	touch $(STAMP)
 
 install: $(STAMP)

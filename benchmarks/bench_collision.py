@@ -64,7 +64,7 @@ def curved_bunny_layers() -> tuple[list, float]:
 def stored_layers(store: Path) -> tuple[list, float]:
     """The layers and the platform height of the first run in a store."""
     from replan_store import first_ref
-    from tasks.codec import read_layers, read_solid
+    from neuralslicer.tasks.codec import read_layers, read_solid
 
     return read_layers(first_ref(store, "layers")).meshes, float(read_solid(first_ref(store, "model")).platform_z)
 

@@ -119,7 +119,7 @@ def slice_one(name: str, tmp: Path) -> dict:
     start = time.perf_counter()
     peak, stop = [0], threading.Event()
     with open(tmp / "stderr.txt", "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "cli", "slice", str(model), *extra, "--out", str(out)],
+        proc = subprocess.Popen([sys.executable, "-m", "neuralslicer.cli", "slice", str(model), *extra, "--out", str(out)],
                                 env=env, stdout=subprocess.DEVNULL, stderr=err, cwd=REPO)
         watch = threading.Thread(target=peak_memory, args=(proc, stop, peak), daemon=True)
         watch.start()

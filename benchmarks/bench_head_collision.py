@@ -120,8 +120,8 @@ def _objectives(variant: str, strength: bool) -> str:
 
 def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
     """Waypoints and collision flags of the printed program (the print whose counts match the metrics)."""
-    from storage import ArtifactStore, ArtifactRef
-    from tasks.codec import read_collision_map
+    from neuralslicer.storage import ArtifactStore, ArtifactRef
+    from neuralslicer.tasks.codec import read_collision_map
 
     st = ArtifactStore(store)
     for group in sorted(store.glob("*/motion/*")):
@@ -136,7 +136,7 @@ def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
 def _slice(model: list[str], variant: str, strength: bool, extra: list[str], maps: dict) -> dict:
     """One CLI slice in a fresh folder: its metrics and wall time (and its collision map into maps)."""
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "cli", "slice", *model, "--out", f"{tmp}/out",
+        cmd = [sys.executable, "-m", "neuralslicer.cli", "slice", *model, "--out", f"{tmp}/out",
                "--objectives", _objectives(variant, strength), *VARIANTS[variant], *extra]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=REPO)

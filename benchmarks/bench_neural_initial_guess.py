@@ -37,7 +37,7 @@ OLD = {"optim": {"betas": [0.9, 0.999], "plateau_patience": 30, "divergence_fact
 
 def ring_inputs(reduced: bool) -> dict[str, np.ndarray]:
     """Samples B, cage and the study's default user field for the ring (y-up), as the pipeline makes them."""
-    from flows.branch import load_branch_spec, make_user_field
+    from neuralslicer.flows.branch import load_branch_spec, make_user_field
     from neuralslicer.cage import build_cage, interior_points
     from neuralslicer.config import SliceConfig
     from neuralslicer.model.solid import implicit_solid

@@ -61,7 +61,7 @@ def main() -> None:
                       "triangles": int(sum(len(m.faces) for m in layers.meshes))}
     with tempfile.TemporaryDirectory() as tmp:
         env = {**os.environ, "PREFECT_HOME": str(Path(tmp) / "prefect")}
-        cmd = [sys.executable, "-m", "cli", "slice", str(RING), "--up", "y", "--out", str(Path(tmp) / "ring"),
+        cmd = [sys.executable, "-m", "neuralslicer.cli", "slice", str(RING), "--up", "y", "--out", str(Path(tmp) / "ring"),
                "--objectives", "none"]
         t = time.perf_counter()
         subprocess.run(cmd, check=True, env=env, capture_output=True)

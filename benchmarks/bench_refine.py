@@ -26,8 +26,8 @@ from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.optimise import FieldResult, Refinement, optimise_for_solid
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.config import ToolpathConfig
-from storage import ArtifactRef, ArtifactStore
-from tasks.codec import read_cage, read_samples, read_solid
+from neuralslicer.storage import ArtifactRef, ArtifactStore
+from neuralslicer.tasks.codec import read_cage, read_samples, read_solid
 
 
 def ref(store: ArtifactStore, root: str, model: str, step: str) -> ArtifactRef:

@@ -31,7 +31,7 @@ def one_run(tmp: Path) -> dict:
     out = tmp / "ring"
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "cli", "slice", str(RING), "--up", "y", "--out", str(out)],
+    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "slice", str(RING), "--up", "y", "--out", str(out)],
                           env=env, capture_output=True, text=True, cwd=ROOT.parent)
     wall = time.perf_counter() - start
     if done.returncode != 0:
@@ -60,7 +60,7 @@ def one_run(tmp: Path) -> dict:
 
 def _prints(store: Path) -> list[dict]:
     """Every print of the run, in the order made: collisions by kind and what the travel lift and tilt did."""
-    from storage import ArtifactStore
+    from neuralslicer.storage import ArtifactStore
 
     st = ArtifactStore(store)
     rows = []

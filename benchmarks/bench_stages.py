@@ -175,7 +175,7 @@ def cli_runs(name: str, tmp: Path) -> dict:
     res = {}
     for run in ("fresh", "cached"):
         t = time.perf_counter()
-        done = subprocess.run([sys.executable, "-m", "cli", *args, "--out", str(out)], env=env, cwd=ROOT.parent,
+        done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", *args, "--out", str(out)], env=env, cwd=ROOT.parent,
                               capture_output=True, text=True)
         wall = time.perf_counter() - t
         if done.returncode != 0:

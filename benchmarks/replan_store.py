@@ -13,8 +13,8 @@ from pathlib import Path
 
 from neuralslicer.motion import load_profile, plan_print
 from neuralslicer.toolpath.config import ToolpathConfig
-from storage import ArtifactRef, ArtifactStore
-from tasks.codec import read_layers, read_solid
+from neuralslicer.storage import ArtifactRef, ArtifactStore
+from neuralslicer.tasks.codec import read_layers, read_solid
 
 
 def first_ref(store: Path, step: str) -> ArtifactRef:

@@ -1,6 +1,6 @@
-"""`python -m cli ...` runs the `neuralslicer` command."""
+"""`python -m neuralslicer.cli ...` runs the `neuralslicer` command."""
 import sys
 
-from cli.main import main
+from neuralslicer.cli.main import main
 
 sys.exit(main())

@@ -8,10 +8,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
-from cli.studies import add_compare_parser, add_study_parser
-from flows.local_api import LocalApi, api_serving, start_local_api
-from flows.settings import cache_settings, with_api_retry
+from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
+from neuralslicer.cli.studies import add_compare_parser, add_study_parser
+from neuralslicer.flows.local_api import LocalApi, api_serving, start_local_api
+from neuralslicer.flows.settings import cache_settings, with_api_retry
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.device import limit_threads
@@ -32,7 +32,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
     if args.init not in (None, "height", "heat") and not Path(args.init).is_file():
         raise InputError(args.init, "no such file (--init takes height, heat or a file of field values)")
     out_dir = Path(args.out).resolve()
-    from storage import default_store
+    from neuralslicer.storage import default_store
 
     store = str(args.store or default_store(out_dir))
     solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
@@ -45,7 +45,7 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
                api: LocalApi | None) -> int:
     """Run the slicing flow (against the local API once it is up) and print its summary."""
     limit_threads()  # a run pinned to fewer cores (taskset, a cgroup quota) uses only those
-    from flows.slice import ensure_store, slice_flow
+    from neuralslicer.flows.slice import ensure_store, slice_flow
 
     store = ensure_store(store)
     user_field = args.init if args.init not in (None, "height", "heat") else None

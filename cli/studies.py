@@ -5,8 +5,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
-from flows.settings import cache_settings, prefect_environment, with_api_retry
+from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
+from neuralslicer.flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
 from neuralslicer.neural.device import limit_threads
 
@@ -50,7 +50,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.study == "initial-guess" and args.user_field is not None and not Path(args.user_field).is_file():
         raise InputError(args.user_field, "no such file (--user-field takes an .npz with points and values)")
 
-    from storage import default_store
+    from neuralslicer.storage import default_store
 
     store_path = args.store or default_store(out_dir)
     for m in models:
@@ -59,8 +59,8 @@ def cmd_study(args: argparse.Namespace) -> int:
     def job() -> int:
         prefect_environment()
         limit_threads()
-        from flows.studies import ablation_study, batch_study, cage_study, initial_guess_study, methods_study
-        from storage import ArtifactStore
+        from neuralslicer.flows.studies import ablation_study, batch_study, cage_study, initial_guess_study, methods_study
+        from neuralslicer.storage import ArtifactStore
 
         store = ArtifactStore(store_path).root
         common = dict(out_dir=str(out_dir), up=args.up, store=store, config=config, dask=args.dask,
@@ -93,7 +93,7 @@ def print_study(study: dict[str, Any]) -> None:
     """The study table on the terminal."""
     from rich.table import Table
 
-    from flows.study_report import _fmt, table_rows
+    from neuralslicer.flows.study_report import _fmt, table_rows
     from neuralslicer.console import table_console
 
     rows = table_rows(study)

@@ -16,7 +16,7 @@ from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.model.spec import ModelSpec, load_model
 from pydantic import BaseModel, ConfigDict, Field
 
-from storage import ArtifactStore, write_json_atomic
+from neuralslicer.storage import ArtifactStore, write_json_atomic
 
 
 class Branch(BaseModel):
@@ -72,7 +72,7 @@ def worker_identity() -> dict[str, Any]:
 
 def run_pipeline(branch: Branch) -> dict[str, Any]:
     """The slicing pipeline for one branch (the slice flow's steps, with its user field); returns its record."""
-    from flows.slice import slice_pipeline
+    from neuralslicer.flows.slice import slice_pipeline
 
     start = time.perf_counter()
     started_at = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())

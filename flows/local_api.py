@@ -28,7 +28,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from flows.settings import API_START_FAILED, prefect_environment
+from neuralslicer.flows.settings import API_START_FAILED, prefect_environment
 
 #: exit status of uvicorn when its port is taken (another process got it first): pick another one
 _PORT_TAKEN = 3
@@ -88,7 +88,7 @@ class LocalApi:
         # a session of its own: a SIGTERM or Ctrl-C sent to the command's process group stops the flow, which then
         # reports its end to this server; the server stays for the next command or goes with this one
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "flows.api_server", str(os.getpid()), str(self.idle_s), str(self.port)],
+            [sys.executable, "-m", "neuralslicer.flows.api_server", str(os.getpid()), str(self.idle_s), str(self.port)],
             env=env, stdout=subprocess.DEVNULL, stderr=self._log, start_new_session=True)
 
     def _record(self) -> Path:

@@ -21,14 +21,14 @@ from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.pipeline import FieldInputs, Printed, run_chain
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.toolpath.config import ToolpathConfig
-from flows.settings import artifact_key
-from storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
-from tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
-from tasks.common import run_step
-from tasks.export import export_task
-from tasks.fea import fea_task, printed_fea_task, stress_samples_task, verify_task
-from tasks.provenance import record_provenance
-from tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, motion_task, program_task,
+from neuralslicer.flows.settings import artifact_key
+from neuralslicer.storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
+from neuralslicer.tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
+from neuralslicer.tasks.common import run_step
+from neuralslicer.tasks.export import export_task
+from neuralslicer.tasks.fea import fea_task, printed_fea_task, stress_samples_task, verify_task
+from neuralslicer.tasks.provenance import record_provenance
+from neuralslicer.tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, motion_task, program_task,
                          s3_field_task, s3_oneshot_field_task, samples_task, surface_task, toolpaths_task)
 
 

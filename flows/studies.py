@@ -11,12 +11,12 @@ from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
-from flows.settings import cache_settings
-from flows.branch import Branch, load_branch_spec, make_user_field, study_branch
-from flows.study_report import write_study_outputs
+from neuralslicer.flows.settings import cache_settings
+from neuralslicer.flows.branch import Branch, load_branch_spec, make_user_field, study_branch
+from neuralslicer.flows.study_report import write_study_outputs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
-from storage import ArtifactStore, default_store
+from neuralslicer.storage import ArtifactStore, default_store
 
 INIT_KINDS = ("height", "heat", "user")
 
@@ -39,13 +39,13 @@ def task_runner(dask: str | None, n_branches: int, dask_workers: int = 2, max_wo
     """The task runner of a study: threads on this machine, a Dask LocalCluster ('local') or an existing scheduler."""
     if not dask:
         return ThreadPoolTaskRunner(max_workers=max_workers or max(n_branches, 1))
-    from flows.dask_support import StudyDaskTaskRunner
+    from prefect_dask import DaskTaskRunner
 
     if dask == "local":
-        return StudyDaskTaskRunner(cluster_class="distributed.LocalCluster",
+        return DaskTaskRunner(cluster_class="distributed.LocalCluster",
                               cluster_kwargs={"n_workers": dask_workers, "threads_per_worker": 1, "processes": True,
                                               "host": "127.0.0.1", "dashboard_address": None})
-    return StudyDaskTaskRunner(address=dask)
+    return DaskTaskRunner(address=dask)
 
 
 def branch_name(text: str) -> str:
@@ -260,7 +260,7 @@ def batch_study(models: list[str], out_dir: str, up: str | None = None, store: s
 def slice_model(model: str, out_dir: str, up: str | None = None, store: str | None = None,
                 config: SliceConfig | None = None) -> dict[str, Any]:
     """Slice one model file/spec (deployment-friendly parameters): the slicing flow with the store's cache settings."""
-    from flows.slice import slice_flow
+    from neuralslicer.flows.slice import slice_flow
 
     spec = load_branch_spec(str(Path(model).resolve()), up)
     out = Path(out_dir).resolve()

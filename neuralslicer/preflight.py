@@ -19,7 +19,7 @@ from neuralslicer.motion.profile import MachineProfile, load_profile
 @dataclass(frozen=True)
 class Names:
     """How the checks' messages name what the user set: the pipeline's parameters by default (a deployed flow's);
-    the command line passes its flags (``cli.options.CLI_NAMES``)."""
+    the command line passes its flags (``neuralslicer.cli.options.cli_names``)."""
 
     out: str = "out_dir"
     store: str = "store"

@@ -6,7 +6,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from neuralslicer.fileio import json_sha256, to_json
-from storage.store import ArtifactRef
+from neuralslicer.storage.store import ArtifactRef
 
 
 def canonical(value: Any) -> Any:

@@ -19,7 +19,7 @@ import numpy as np
 import zarr
 
 from neuralslicer.fileio import to_json
-from storage.layout import chunk_shape, compressor, group_dimensions, group_kind
+from neuralslicer.storage.layout import chunk_shape, compressor, group_dimensions, group_kind
 
 COMPLETE = "_complete"
 STAGING = "_staging"

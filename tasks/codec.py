@@ -21,7 +21,7 @@ from neuralslicer.neural.initial_guess import load_user_field
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
-from storage import ArtifactRef, ArtifactStore, digest
+from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
 
 if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
     from neuralslicer.outputs import RunResults, StrengthRound

@@ -17,8 +17,8 @@ from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
 from prefect.states import State
 
 from neuralslicer.provenance import package_versions
-from storage import ArtifactRef, ArtifactStore, digest
-from tasks.progress import say
+from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
+from neuralslicer.tasks.progress import say
 
 def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
     """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""

@@ -5,9 +5,9 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.fileio import write_text_atomic
-from storage import ArtifactRef
-from tasks.codec import read_run
-from tasks.common import pipeline_task
+from neuralslicer.storage import ArtifactRef
+from neuralslicer.tasks.codec import read_run
+from neuralslicer.tasks.common import pipeline_task
 
 STAMP = ".neuralslicer-export"
 

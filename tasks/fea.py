@@ -8,9 +8,9 @@ from neuralslicer.fea import run_fea, stress_samples
 from neuralslicer.fea.verify import printed_fea_record, verify_field, verify_print
 from neuralslicer.layers import LayerConfig
 from neuralslicer.toolpath.config import ToolpathConfig
-from storage import ArtifactRef
-from tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_motion, read_solid
-from tasks.common import pipeline_task
+from neuralslicer.storage import ArtifactRef
+from neuralslicer.tasks.codec import read_cage, read_fea, read_fea_spec, read_field, read_motion, read_solid
+from neuralslicer.tasks.common import pipeline_task
 
 
 @pipeline_task("fea", version="1")

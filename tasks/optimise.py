@@ -10,8 +10,8 @@ from neuralslicer.model.solid import Solid
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.neural.optimise import Refinement, optimise_for_solid
 from neuralslicer.samples import SurfaceSamples
-from storage import ArtifactRef, ArtifactStore
-from tasks.progress import Progress, say
+from neuralslicer.storage import ArtifactRef, ArtifactStore
+from neuralslicer.tasks.progress import Progress, say
 
 KEEP_CHECKPOINTS = 2
 PROGRESS_TERMS = ("total", "sf", "po", "sr", "gc", "lr", "overhang", "overhang_target", "head_hits")

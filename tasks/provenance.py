@@ -6,7 +6,7 @@ from typing import Any
 
 from neuralslicer.fileio import write_json_atomic
 from neuralslicer.provenance import record_digest
-from storage import ArtifactStore
+from neuralslicer.storage import ArtifactStore
 
 
 def record_provenance(out_dir: str | Path, store: str, model: str, record: dict[str, Any]) -> str:

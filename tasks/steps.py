@@ -19,12 +19,12 @@ from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.samples import surface_samples
 from neuralslicer.toolpath.config import ToolpathConfig
-from storage import ArtifactRef
-from storage.content_cache import ContentCache, cache_root
-from tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_motion,
+from neuralslicer.storage import ArtifactRef
+from neuralslicer.storage.content_cache import ContentCache, cache_root
+from neuralslicer.tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_motion,
                          read_part_collisions, read_samples, read_solid, read_stress, read_toolpaths, read_user_field)
-from tasks.common import pipeline_task
-from tasks.progress import Progress, say
+from neuralslicer.tasks.common import pipeline_task
+from neuralslicer.tasks.progress import Progress, say
 
 
 @pipeline_task("model", version="1", exclude=("spec",), retries=0)
@@ -90,7 +90,7 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
     if not objectives:
         return height_record(c)
     from neuralslicer.neural.optimise import FieldResult, Refinement   # torch: only when a field is optimised
-    from tasks.optimise import run_optimisation
+    from neuralslicer.tasks.optimise import run_optimisation
 
     weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
     refine = None

@@ -82,7 +82,7 @@ def planar_run(prefect_server: None, small_part: Path, tmp_path_factory: pytest.
     output folder, the store at ``store.zarr``. Read it only: a test that reruns or changes a run makes its own."""
     import yaml
 
-    from cli.main import main
+    from neuralslicer.cli.main import main
 
     root = tmp_path_factory.mktemp("planar_run")
     cfg = root / "cfg.yaml"

@@ -13,8 +13,8 @@ from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
 from neuralslicer.model.spec import spec_for_file
 from neuralslicer.provenance import metrics_entries, provenance
-from tasks.provenance import record_provenance
-from storage import ArtifactStore
+from neuralslicer.tasks.provenance import record_provenance
+from neuralslicer.storage import ArtifactStore
 from studies_common import torus_file
 
 REPO = Path(__file__).resolve().parents[1]
@@ -86,22 +86,22 @@ def test_compare_command_prints_a_table_and_exits_1_when_runs_differ(tmp_path: P
     a = _run_folder(tmp_path / "a", {"n_layers": 10, "sf.overhang_area_fraction": 0.25})
     b = _run_folder(tmp_path / "b", {"n_layers": 10, "sf.overhang_area_fraction": 0.125})
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
-    done = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(b)], cwd=REPO,
+    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(b)], cwd=REPO,
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 1, done.stderr
     assert "sf.overhang_area_fraction" in done.stdout and "0.25" in done.stdout and "0.125" in done.stdout
     assert "n_layers" not in done.stdout and "1 difference(s)" in done.stdout
-    same = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(a)], cwd=REPO,
+    same = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(a)], cwd=REPO,
                           capture_output=True, text=True, env=env, timeout=120)
     assert same.returncode == 0 and "0 difference(s)" in same.stdout
-    bad = subprocess.run([sys.executable, "-m", "cli", "compare", str(a), str(tmp_path / "x")],
+    bad = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(tmp_path / "x")],
                          cwd=REPO, capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "neuralslicer: error:" in bad.stderr
 
 
 def _compare_json(capsys, *argv: str) -> tuple[int, dict]:
     """Exit status and parsed stdout of `neuralslicer compare ... --json`, in process."""
-    from cli.main import main
+    from neuralslicer.cli.main import main
 
     code = main(["compare", *argv, "--json"])
     return code, json.loads(capsys.readouterr().out)

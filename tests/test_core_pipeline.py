@@ -11,7 +11,7 @@ from conftest import REPO, fast_config
 NOTEBOOK = r'''
 import sys
 sys.modules["prefect"] = None   # the core must not need the workflow engine
-sys.modules["storage"] = None   # nor the artifact store
+sys.modules["neuralslicer.storage"] = None   # nor the artifact store
 import json
 from pathlib import Path
 
@@ -22,7 +22,9 @@ from neuralslicer.model.spec import spec_for_file
 model, out = Path(sys.argv[1]), Path(sys.argv[2])
 config = SliceConfig.model_validate(json.loads(sys.argv[3]))
 chain, metrics = slice_model(spec_for_file(model, "z"), config, out)
-print(json.dumps({"modules": sorted(m.split(".")[0] for m in sys.modules if m.split(".")[0] in ("prefect", "storage", "tasks", "flows", "cli") and sys.modules[m] is not None), "metrics": metrics, "gcode": len(chain.program)}, default=float))
+outer = ("prefect", "neuralslicer.storage", "neuralslicer.tasks", "neuralslicer.flows", "neuralslicer.cli")
+loaded = sorted(m for m in sys.modules if m.startswith(outer) and sys.modules[m] is not None)
+print(json.dumps({"modules": loaded, "metrics": metrics, "gcode": len(chain.program)}, default=float))
 '''
 
 

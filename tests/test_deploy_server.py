@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from storage import ArtifactStore
+from neuralslicer.storage import ArtifactStore
 from studies_common import shared_store, tiny_config, torus_file
 
 pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`

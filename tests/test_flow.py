@@ -16,7 +16,7 @@ import trimesh
 import yaml
 
 from conftest import REPO, Planted, fast_config
-from cli.main import main
+from neuralslicer.cli.main import main
 
 pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
@@ -69,7 +69,7 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
     run = json.loads((out / "run.json").read_text())
     assert run["flow_run_name"] == "slice-lpart-run" and run["report_artifact"] == "slice-lpart"
     # run.json names the group of every step, and each is in the store
-    from storage import ArtifactStore
+    from neuralslicer.storage import ArtifactStore
 
     assert {"model", "surface", "samples", "cage", "field", "layers", "toolpaths", "motion", "program"} <= set(run["groups"])
     assert all(ArtifactStore(run["store"], create=False).exists(g) for g in run["groups"].values())
@@ -137,7 +137,7 @@ def test_kill_and_resume(tmp_path, small_part):
     )
     out = tmp_path / "run"
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home")}
-    cmd = [sys.executable, "-m", "cli", *slice_cmd(small_part, out, cfg, "--objectives", "sf,po")]
+    cmd = [sys.executable, "-m", "neuralslicer.cli", *slice_cmd(small_part, out, cfg, "--objectives", "sf,po")]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True)  # its own process group: the kill takes its Prefect server too
     ckpt_root = out / "store.zarr" / "lpart" / "checkpoints"
@@ -165,7 +165,7 @@ def test_kill_and_resume(tmp_path, small_part):
     st = states(out)
     assert [st[t] for t in ("model", "surface", "samples", "cage")] == ["Cached"] * 4
     assert st["field"] == "Completed"
-    from storage import ArtifactStore
+    from neuralslicer.storage import ArtifactStore
 
     store = ArtifactStore(out / "store.zarr")
     field = [f"lpart/field/{d}" for d in store.children("lpart/field")]
@@ -298,9 +298,9 @@ def test_collisions_of_the_print_refine_the_collision_term(tmp_path, small_part)
     the weights of the field that printed it; the flow takes this path whenever gc is an objective."""
     from neuralslicer.config import SliceConfig
     from neuralslicer.motion import load_profile
-    from storage import ArtifactRef, ArtifactStore
-    from tasks.codec import read_part_collisions
-    from tasks.steps import field_task
+    from neuralslicer.storage import ArtifactRef, ArtifactStore
+    from neuralslicer.tasks.codec import read_part_collisions
+    from neuralslicer.tasks.steps import field_task
 
     profile = load_profile("table_bc_linuxcnc").model_dump(mode="json")
     profile["nozzle"] = {"cone_half_angle_deg": 85.0, "cone_length": 3.0, "holder_radius": 1.0, "holder_length": 1.0}
@@ -351,7 +351,7 @@ def test_refinement_rounds_do_not_use_up_the_retries(tmp_path, small_part):
     assert metrics["collision_resolution.0.platform_collisions"] > 0
     assert metrics["collision_resolution.1.stage"] == "refined around the collisions of 1 print(s), floor weight x3"
     assert "collision_resolution.2.stage" not in metrics and metrics["field.steps"] <= 5
-    from storage import ArtifactStore
+    from neuralslicer.storage import ArtifactStore
     store = ArtifactStore(str(out / "store.zarr"), create=False)
     weights = sorted(store.attrs(f"lpart/field/{d}")["config"]["loss"]["gc_floor_weight"]
                      for d in store.children("lpart/field"))

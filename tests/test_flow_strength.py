@@ -8,7 +8,7 @@ import pytest
 import trimesh
 import yaml
 
-from cli.main import main
+from neuralslicer.cli.main import main
 from conftest import fast_config
 from neuralslicer.config import SliceConfig
 from neuralslicer.model.spec import load_spec

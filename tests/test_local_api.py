@@ -9,8 +9,8 @@ import pytest
 from prefect import flow
 from prefect.settings import PREFECT_API_URL, temporary_settings
 
-from flows.local_api import LocalApi, start_local_api
-from flows.settings import API_START_FAILED
+from neuralslicer.flows.local_api import LocalApi, start_local_api
+from neuralslicer.flows.settings import API_START_FAILED
 
 pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
 

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 import yaml
 
-from cli.main import main
+from neuralslicer.cli.main import main
 from conftest import l_part_mesh
 
 
@@ -119,7 +119,7 @@ def test_too_many_layers_need_force(tmp_path, capsys):
     assert check_layer_count(solid, config) == pytest.approx(2000, abs=2)
     with pytest.raises(InputError, match="or pass force"):   # the core names the flow's parameters...
         check_layer_count(solid, config, limit=1000)
-    from cli.options import cli_names
+    from neuralslicer.cli.options import cli_names
 
     with pytest.raises(InputError, match="or pass --force") as err:   # ...the command line its flags
         check_layer_count(solid, config, limit=1000, names=cli_names())
@@ -216,7 +216,7 @@ def test_a_file_named_by_mistake_is_never_echoed(tmp_path, capsys, name, expecte
 def test_the_slice_help_names_the_preflights_layer_limit():
     """The --force help states the preflight's layer limit (written out: the command line does not import the
     preflight before it runs a slice)."""
-    from cli.main import make_parser
+    from neuralslicer.cli.main import make_parser
     from neuralslicer.preflight import MAX_LAYERS
 
     slice_parser = next(a for a in make_parser()._subparsers._group_actions).choices["slice"]
@@ -228,7 +228,7 @@ def test_version_prints_the_version_pyproject_declares(capsys) -> None:
     import tomllib
     from pathlib import Path
 
-    from cli.main import make_parser
+    from neuralslicer.cli.main import make_parser
 
     declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
     with pytest.raises(SystemExit) as stop:

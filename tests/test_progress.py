@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from tasks import progress
+from neuralslicer.tasks import progress
 
 
 @pytest.mark.parametrize("first_step", [1, 13, 55])

@@ -18,7 +18,7 @@ import trimesh
 import yaml
 
 from conftest import REPO, fast_config, l_part_mesh
-from cli.main import main
+from neuralslicer.cli.main import main
 
 pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
@@ -59,8 +59,8 @@ def cli_env(tmp_path: Path, own_server: bool = False) -> dict[str, str]:
 
 
 def cli(args: list[str], env: dict[str, str], **kwargs) -> subprocess.Popen:
-    """`python -m cli ARGS` in its own process group (a kill takes its children too)."""
-    return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, start_new_session=True,
+    """`python -m neuralslicer.cli ARGS` in its own process group (a kill takes its children too)."""
+    return subprocess.Popen([sys.executable, "-m", "neuralslicer.cli", *args], cwd=REPO, env=env, start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kwargs)
 
 
@@ -73,7 +73,7 @@ def test_two_fresh_stores_give_the_same_cage_and_metrics(case, tmp_path):
 
 
 def test_the_cage_cache_holds_only_verified_arrays(tmp_path):
-    from storage.content_cache import ContentCache, cache_root
+    from neuralslicer.storage.content_cache import ContentCache, cache_root
 
     assert cache_root({"NEURALSLICER_CACHE_DIR": "off"}) is None
     assert cache_root({"XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "neuralslicer"
@@ -113,7 +113,7 @@ def test_sigkill_at_a_step_then_rerun_gives_the_uninterrupted_result(case, tmp_p
         proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL
     assert not (out / "metrics.json").exists()
-    rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+    rerun = subprocess.run([sys.executable, "-m", "neuralslicer.cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
                            timeout=600)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert comparable(out) == case["reference"]
@@ -135,7 +135,7 @@ def test_ctrl_c_says_one_line_exits_130_and_the_rerun_resumes(case, tmp_path):
     assert [ln for ln in rest if ln.startswith("neuralslicer:")] == [
         "neuralslicer: interrupted; run the same command again to resume"]
     assert not any("Traceback" in ln for ln in rest), "\n".join(rest[-30:])
-    rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+    rerun = subprocess.run([sys.executable, "-m", "neuralslicer.cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
                            timeout=600)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert comparable(out) == case["reference"]
@@ -143,7 +143,7 @@ def test_ctrl_c_says_one_line_exits_130_and_the_rerun_resumes(case, tmp_path):
 
 def _resumed_from(out: Path) -> list[int | None]:
     """The step each optimisation of the run's store resumed from (None: started afresh)."""
-    from storage import ArtifactStore
+    from neuralslicer.storage import ArtifactStore
 
     root = out / "store.zarr"
     model = next(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("_"))
@@ -167,7 +167,7 @@ def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_
         seen.append(line.rstrip())
         if line.startswith("optimise: ") and "/20 (" in line and int(line.split()[1].split("/")[0]) >= 6:
             break                                  # checkpoints (every 2 steps) are on disk
-    server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "flows.api_server" in c.cmdline()]
+    server = [c for c in psutil.Process(proc.pid).children(recursive=True) if "neuralslicer.flows.api_server" in c.cmdline()]
     assert server and all(os.getpgid(c.pid) != proc.pid for c in server), "the local server shares the group"
     sent = time.monotonic()
     os.killpg(proc.pid, signal.SIGTERM)
@@ -179,7 +179,7 @@ def test_sigterm_to_the_process_group_stops_like_ctrl_c_exits_143_and_the_rerun_
     psutil.wait_procs(server, timeout=10)
     assert not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in server)
     assert not (out / "metrics.json").exists()
-    rerun = subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+    rerun = subprocess.run([sys.executable, "-m", "neuralslicer.cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
                            timeout=600)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert any(step for step in _resumed_from(out))
@@ -217,7 +217,7 @@ def test_concurrent_runs_share_one_store(case, tmp_path):
         assert p.returncode == 0, f"{name}: {errors[name][-3000:]}"
     assert comparable(tmp_path / "same_a") == comparable(tmp_path / "same_b") == case["reference"]
     assert comparable(tmp_path / "other")["n_layers"] > 0
-    from storage import ArtifactStore
+    from neuralslicer.storage import ArtifactStore
 
     shared = ArtifactStore(store, create=False)
     for model in ("lpart", "tpart"):

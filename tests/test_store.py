@@ -9,8 +9,8 @@ import pytest
 import zarr
 from zarr.codecs import BloscCodec
 
-from storage import ArtifactRef, ArtifactStore, atomic_path, digest, groups_used
-from storage.layout import CHUNK_BYTES, DIMENSIONS, chunk_shape, dimension_names, group_dimensions
+from neuralslicer.storage import ArtifactRef, ArtifactStore, atomic_path, digest, groups_used
+from neuralslicer.storage.layout import CHUNK_BYTES, DIMENSIONS, chunk_shape, dimension_names, group_dimensions
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -82,7 +82,7 @@ def test_digest_uses_artifact_digests_and_model_fields():
 
 def test_two_stores_never_share_a_cache_record():
     # remote (fsspec) stores keep their Prefect records in one shared folder: the store is in the key
-    from tasks.steps import surface_task
+    from neuralslicer.tasks.steps import surface_task
 
     model = ArtifactRef("memory://a/store.zarr", "part/model/abc", "abc")
     key = lambda store: surface_task.pipeline.cache_key(None, {"store": store, "model": model})  # noqa: E731
@@ -95,7 +95,7 @@ def test_two_stores_never_share_a_cache_record():
 
 def _lock_file(store: ArtifactStore, path: str) -> Path:
     """Where the store keeps the lock file of an artifact path."""
-    from storage.store import STAGING
+    from neuralslicer.storage.store import STAGING
 
     f = Path(str(store.root), STAGING, "locks", path.replace("/", "__") + ".lock")
     f.parent.mkdir(parents=True, exist_ok=True)
@@ -108,7 +108,7 @@ def test_locks_name_host_and_pid_and_are_taken_over_only_when_abandoned(tmp_path
     import socket
     import time
 
-    import storage.store as S
+    import neuralslicer.storage.store as S
 
     st = ArtifactStore(tmp_path / "s.zarr")
     f = _lock_file(st, "m/cage/x")
@@ -138,7 +138,7 @@ def test_locks_name_host_and_pid_and_are_taken_over_only_when_abandoned(tmp_path
 
 
 def test_reading_never_creates_a_store(tmp_path):
-    from tasks.codec import read
+    from neuralslicer.tasks.codec import read
 
     missing = tmp_path / "moved" / "store.zarr"
     with pytest.raises(FileNotFoundError, match="no artifact store there"):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage import ArtifactStore
+from neuralslicer.storage import ArtifactStore
 from studies_common import shared_store, tiny_config, torus_file
 
 pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
@@ -23,7 +23,7 @@ def test_initial_guess_study_runs_branches_in_dask_worker_processes(
     """Three branches (height, heat, user) run in the cluster's worker processes; the report overlays three curves."""
     from distributed import Client, LocalCluster
 
-    from flows.studies import initial_guess_study
+    from neuralslicer.flows.studies import initial_guess_study
 
     model = torus_file(tmp_path_factory.getbasetemp())
     out = tmp_path / "ig"

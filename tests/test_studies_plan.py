@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from flows.branch import make_user_field
-from tasks.codec import store_user_field
-from flows.dask_support import StudyDaskTaskRunner
-from flows.studies import (StudyOptions, ablation_branches, batch_branches, cage_branches, initial_guess_branches,
+from neuralslicer.flows.branch import make_user_field
+from neuralslicer.tasks.codec import store_user_field
+from prefect_dask import DaskTaskRunner
+from neuralslicer.flows.studies import (StudyOptions, ablation_branches, batch_branches, cage_branches, initial_guess_branches,
                            methods_branches, task_runner)
-from flows.study_report import markdown_table, table_rows
-from cli.main import main as studies_main
+from neuralslicer.flows.study_report import markdown_table, table_rows
+from neuralslicer.cli.main import main as studies_main
 from neuralslicer.errors import InputError
 from neuralslicer.neural.initial_guess import user_field_on_cage
-from storage import ArtifactStore
+from neuralslicer.storage import ArtifactStore
 from studies_common import tiny_config, torus_file
 
 
@@ -110,7 +110,7 @@ def test_task_runner_choice() -> None:
     assert isinstance(task_runner(None, 3), ThreadPoolTaskRunner)
     assert task_runner(None, 3)._max_workers == 3 and task_runner(None, 3, max_workers=1)._max_workers == 1
     remote = task_runner("tcp://127.0.0.1:8786", 3)
-    assert isinstance(remote, StudyDaskTaskRunner) and remote.address == "tcp://127.0.0.1:8786"
+    assert isinstance(remote, DaskTaskRunner) and remote.address == "tcp://127.0.0.1:8786"
     local = task_runner("local", 3, dask_workers=4)
     assert local.cluster_kwargs["n_workers"] == 4 and local.cluster_kwargs["processes"] is True
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from storage import ArtifactStore
+from neuralslicer.storage import ArtifactStore
 from studies_common import shared_store, tiny_config, torus_file
 
 pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _study_command(model: Path, out: Path, store: Path, config: Path) -> list[str]:
     """The study command run by the test (sequential branches: height first, then heat)."""
-    return [sys.executable, "-m", "cli", "study", "initial-guess", str(model), "--kinds",
+    return [sys.executable, "-m", "neuralslicer.cli", "study", "initial-guess", str(model), "--kinds",
             "height,heat", "--out", str(out), "--store", str(store), "--config", str(config), "--workers", "1"]
 
 

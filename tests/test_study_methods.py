@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from conftest import fast_config
-from cli.main import main
+from neuralslicer.cli.main import main
 
 pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
