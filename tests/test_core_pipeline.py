@@ -1,6 +1,8 @@
 """The whole pipeline from the core package alone, as a notebook would run it: no Prefect, no store."""
 from __future__ import annotations
 
+import pytest
+
 import json
 import subprocess
 import sys
@@ -28,6 +30,7 @@ print(json.dumps({"modules": loaded, "metrics": metrics, "gcode": len(chain.prog
 '''
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_the_pipeline_runs_from_the_core_alone(tmp_path: Path, small_part: Path) -> None:
     """Mesh in, G-code and report out through core calls only, with Prefect and the store unimportable."""
     config = fast_config(neural={"optim": {"max_steps": 40}}, objectives=["sf", "po", "gc", "ca"])

@@ -216,6 +216,7 @@ def test_target_loss_ends_the_run_and_the_best_iterate_is_returned(problem):
     assert full.final["total"] == pytest.approx(full.history["total"][best], rel=1e-5)
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_a_diverging_step_is_rolled_back_to_the_best_iterate(problem):
     cfg = _cfg(max_steps=25, lr=0.3, target_loss=0.0)  # far too large: steps blow up
     res = _run(problem, cfg)
@@ -311,6 +312,7 @@ def unsupportable():
     return V, T, samples
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_the_progress_stall_test_fires_only_without_gain_over_its_window(unsupportable):
     """On a run whose overhang falls, then levels off, every measurement from late_after on is judged again
     from the recorded progress: the run goes on while the window's best overhang beats the best before it by

@@ -217,6 +217,7 @@ def _coarse_config(floor: bool) -> NeuralConfig:
     })
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_the_floor_term_clears_what_the_coarse_pool_misses_at_the_platform(loop):
     """The same coarse pool with the floor of the platform term (the default): the field the exact check judges
     collision-free, no refinement needed, and still support-free."""
@@ -227,6 +228,7 @@ def test_the_floor_term_clears_what_the_coarse_pool_misses_at_the_platform(loop)
     assert res.satisfaction["overhang_area_fraction"] < 0.05 * res.satisfaction["planar_overhang_area_fraction"]
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_refinement_clears_the_collisions_the_coarse_pool_missed(loop):
     V, T, samples, probe = loop
     cfg = _coarse_config(False)     # without the floor, so that the coarse pool misses collisions

@@ -47,6 +47,7 @@ def cap_toolpaths() -> Toolpaths:
     return toolpaths(cap_stack(6, thickness=0.5, r0=6.0, theta_max_deg=35.0, subdivisions=4), platform_z=-20.0)
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_overhang_map_shows_the_metric(tmp_path: Path) -> None:
     """The fractions in the titles are overhang_area_fraction's, and the planar one is the closed form
     (1 - sin α) / 2 of a sphere (the cap below z = -R sin α)."""
@@ -79,6 +80,7 @@ def test_thickness_map_counts_beads_outside_the_range(tmp_path: Path, cap_toolpa
     assert stats["outside"] == pytest.approx(stats["below"] + stats["above"])
 
 
+@pytest.mark.slow   # over 10 s: the full suite runs it, `make test-fast` does not
 def test_layer_toolpaths_pick_first_thirds_and_last(tmp_path: Path) -> None:
     """Four layers drawn, first and last among them, projected on planes of their mean tool axis."""
     tp = toolpaths(planar_stack(7, thickness=0.5, size=10.0), platform_z=0.0)
