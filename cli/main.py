@@ -145,6 +145,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
                          "start) and export PREFECT_API_URL=http://HOST:4200/api")
     from neuralslicer.flows.serve import DeploymentDefaults, check_names, serve_deployments
 
+    if args.model and not Path(args.model).exists():
+        raise InputError(args.model, "no such file")
     config = None
     if args.config:
         import yaml
