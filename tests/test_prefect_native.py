@@ -170,3 +170,25 @@ def test_a_deployed_study_checks_its_models_first(prefect_server: None, small_pa
                        return_state=True)
     assert state.is_failed() and state.message.startswith("layers.layer_height: 100 mm is at least the model's height")
     assert not (tmp_path / "study" / "study.json").exists()
+
+
+def test_a_step_line_reaches_a_workers_output_once() -> None:
+    """console_prints_info: a run logger whose INFO records a Prefect console handler prints (a worker's output) makes
+    say() leave its own stderr line out; the command line's console (WARNING) does not."""
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    from neuralslicer.tasks.progress import console_prints_info
+
+    parent, child = logging.getLogger("ns-test-console"), logging.getLogger("ns-test-console.runs")
+    parent.setLevel(logging.INFO)
+    parent.propagate = False                      # the root's handlers are whatever Prefect's set-up left there
+    handler = PrefectConsoleHandler(level=logging.WARNING)
+    parent.addHandler(handler)
+    try:
+        assert not console_prints_info(child)
+        handler.setLevel(logging.INFO)
+        assert console_prints_info(child)
+        parent.setLevel(logging.WARNING)          # PREFECT_LOGGING_LEVEL=WARNING: no INFO record at all
+        assert not console_prints_info(child)
+    finally:
+        parent.removeHandler(handler)
