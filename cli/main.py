@@ -1,4 +1,4 @@
-"""The command line: `neuralslicer slice | fea | study | compare` (outside the core: it starts the flows)."""
+"""The command line: `neuralslicer slice | fea | study | compare | serve` (outside the core: it starts the flows)."""
 from __future__ import annotations
 
 import argparse
@@ -23,21 +23,16 @@ def cmd_slice(args: argparse.Namespace) -> int:
     if not model.exists():
         raise InputError(model, "no such file")
     api = start_local_api()  # boots in the background while the model is read and checked
-    from neuralslicer.model.solid import implicit_solid
-    from neuralslicer.model.spec import load_model
-    from neuralslicer.preflight import preflight
+    from neuralslicer.preflight import check_slice
+    from neuralslicer.storage import default_store
 
-    spec = load_model(model, args.up, args.units)
     config = build_config(args)
     if args.init not in (None, "height", "heat") and not Path(args.init).is_file():
         raise InputError(args.init, "no such file (--init takes height, heat or a file of field values)")
     out_dir = Path(args.out).resolve()
-    from neuralslicer.storage import default_store
-
     store = str(args.store or default_store(out_dir))
-    solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
-    needs_fea = config.needs_fea(spec)
-    preflight(spec, solid, config, out_dir, store, force=args.force, needs_fea=needs_fea, names=cli_names())
+    spec = check_slice(model, out_dir, store, config, up=args.up, units=args.units, force=args.force,
+                       names=cli_names())   # the deployed flow's checks, named by the flags here
     return run_in_out_dir(out_dir, lambda: _run_slice(spec, out_dir, config, store, args, api))
 
 
@@ -135,6 +130,68 @@ def add_slice_parser(sub: Any) -> None:
     p.set_defaults(func=cmd_slice)
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Serve the slice and study deployments from this machine (Prefect's serve) until Ctrl-C."""
+    import os
+
+    from neuralslicer.flows.settings import CONSOLE_LEVEL, prefect_environment
+
+    os.environ.setdefault(CONSOLE_LEVEL, "INFO")   # a server's terminal: the runs it picks up and their logs
+    prefect_environment()
+    from prefect.settings import get_current_settings
+
+    if not get_current_settings().api.url:
+        raise InputError("PREFECT_API_URL", "neuralslicer serve needs a Prefect server: start one (prefect server "
+                         "start) and export PREFECT_API_URL=http://HOST:4200/api")
+    from neuralslicer.flows.serve import DeploymentDefaults, check_names, serve_deployments
+
+    if args.model and not Path(args.model).exists():
+        raise InputError(args.model, "no such file")
+    config = None
+    if args.config:
+        import yaml
+
+        from neuralslicer.config import SliceConfig
+
+        SliceConfig.from_yaml(args.config)   # checked here: an error names the file and the key
+        config = yaml.safe_load(Path(args.config).read_text()) or {}
+    defaults = DeploymentDefaults(
+        only=check_names(_comma(args.only), "--only"), model=str(Path(args.model).resolve()) if args.model else None,
+        up=args.up, out=str(Path(args.out).resolve()) if args.out else None, store=args.store, config=config,
+        cron=args.cron, interval=args.interval, scheduled=check_names(_comma(args.schedule), "--schedule"),
+        paused=args.paused)
+    serve_deployments(defaults, limit=args.limit, gpu_slots=args.gpu_limit)
+    return 0
+
+
+def _comma(text: str) -> list[str]:
+    """``a,b`` -> ['a', 'b']."""
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def add_serve_parser(sub: Any) -> None:
+    """Options of `neuralslicer serve`."""
+    p = sub.add_parser("serve", help="serve the slice and study deployments from this machine (a Prefect server's "
+                                     "scheduled and triggered runs run here)")
+    p.add_argument("--only", default="slice,initial-guess,cages,batch",
+                   help="comma list of the deployments to serve (default: all)")
+    p.add_argument("--model", default=None, help="default model (file or spec) of every deployment")
+    p.add_argument("--up", choices=UP_AXES, default=None, help="default up axis (default: none, a spec keeps its own)")
+    p.add_argument("--out", default=None, help="default output folder (each deployment gets OUT/<name>)")
+    p.add_argument("--store", default=None, help="default artifact store of every deployment")
+    p.add_argument("--config", default=None, help="YAML slicing configuration, the deployments' default 'config'")
+    p.add_argument("--cron", default=None, help="cron schedule (UTC) of the deployments --schedule names, "
+                                                "e.g. '0 2 * * *'")
+    p.add_argument("--interval", type=float, default=None, help="interval schedule (s) instead of a cron one")
+    p.add_argument("--schedule", default="slice", help="comma list of the deployments the schedule is for "
+                                                        "(default slice)")
+    p.add_argument("--paused", action="store_true", help="create the schedule paused")
+    p.add_argument("--limit", type=int, default=None, help="at most this many runs at once (default: no limit)")
+    p.add_argument("--gpu-limit", type=int, default=None,
+                   help="set the 'gpu' tag concurrency limit: at most this many field steps on a CUDA device at once")
+    p.set_defaults(func=cmd_serve)
+
+
 def package_version() -> str:
     """The installed distribution's version (pyproject.toml), or 'unknown' when run from an uninstalled tree."""
     from importlib.metadata import PackageNotFoundError, version
@@ -155,6 +212,7 @@ def make_parser() -> ArgumentParser:
     add_fea_parser(sub)
     add_study_parser(sub)
     add_compare_parser(sub)
+    add_serve_parser(sub)
     return parser
 
 

@@ -8,21 +8,29 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from neuralslicer.errors import NeuralSlicerError
+from neuralslicer.errors import InputError, NeuralSlicerError
 
 T = TypeVar("T")
 
 
 def prefect_environment() -> None:
-    """Quiet, local Prefect defaults unless the user configured Prefect (PREFECT_API_URL / PREFECT_HOME)."""
+    """Quiet, local Prefect defaults unless the user configured Prefect (PREFECT_API_URL / PREFECT_HOME): the run's
+    log in the Prefect UI at INFO (every step's started/done line and the progress lines), the terminal at WARNING
+    (the command prints its own lines)."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # Prefect's logging.yml, key by key: its console handler shows warnings only; the loggers stay at
+    # PREFECT_LOGGING_LEVEL (INFO unless set), so the API handler sends the run's INFO lines to the server
+    os.environ.setdefault(CONSOLE_LEVEL, "WARNING")
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
     os.environ.setdefault("PREFECT_RESULTS_PERSIST_BY_DEFAULT", "true")
     # the local API server needs ~6 s on a quiet machine and far longer on a loaded one (20 s by default)
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(API_STARTUP_TIMEOUT_S))
     quiet_interrupts()
+
+
+#: the level of the console handler of Prefect's logging.yml (``PREFECT_LOGGING_[PATH]_[TO]_[KEY]``)
+CONSOLE_LEVEL = "PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL"
 
 
 class _QuietInterrupts(logging.Filter):
@@ -43,6 +51,26 @@ def quiet_interrupts() -> None:
         logger = logging.getLogger(name)
         if not any(isinstance(f, _QuietInterrupts) for f in logger.filters):
             logger.addFilter(_QuietInterrupts())
+
+
+class _OneLineInputErrors(logging.Filter):
+    """Drops Prefect's records that carry the traceback of the user's bad input (an ``InputError``, a parameter that
+    fails validation): the run's state says what is wrong in one line, and the run log has that line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """False for a record whose exception is bad input."""
+        from prefect.exceptions import ParameterTypeError
+
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, (InputError, ParameterTypeError))
+
+
+def quiet_input_errors() -> None:
+    """Install ``_OneLineInputErrors`` on the loggers of Prefect's flow engine (a flow run's and the engine's, once)."""
+    for name in ("prefect.flow_runs", "prefect.engine"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _OneLineInputErrors) for f in logger.filters):
+            logger.addFilter(_OneLineInputErrors())
 
 
 API_STARTUP_TIMEOUT_S = 180

@@ -8,7 +8,7 @@ from pathlib import Path
 from collections.abc import Sequence
 from typing import Any
 
-from prefect import flow, get_run_logger
+from prefect import flow, get_run_logger, tags
 from prefect.states import State
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
@@ -20,6 +20,7 @@ from neuralslicer.model.spec import ModelSpec, model_name, spec_digest
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.pipeline import FieldInputs, Printed, run_chain
 from neuralslicer.provenance import add_to_metrics, provenance
+from neuralslicer.report import embed_figures
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.flows.settings import artifact_key
 from neuralslicer.storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
@@ -47,6 +48,21 @@ class RunLog:
         self.states.append((task.name, state.name))
         self.walls.append(time.perf_counter() - start)
         return state.result()
+
+
+#: the task-run tag of a step that computes on a CUDA device: a Prefect tag concurrency limit of that name
+#: (``prefect concurrency-limit create gpu 1``) lets that many such steps run at once; without one, it only labels
+GPU_TAG = "gpu"
+
+
+def device_tags(device: str | None) -> tuple[str, ...]:
+    """The tags of a step that optimises on ``device`` (``auto``, ``cpu``, ``cuda``, ``cuda:1``; None: no
+    optimisation): ``("gpu",)`` when it resolves to CUDA."""
+    if device is None or device == "cpu":
+        return ()
+    from neuralslicer.neural.device import resolve_device   # torch: only when a field is optimised
+
+    return (GPU_TAG,) if resolve_device(device).type == "cuda" else ()
 
 
 @dataclass
@@ -97,11 +113,13 @@ class TaskSteps:
         if request.method == "s3":
             return self._run(s3_field_task, **common, config=self.s3)
         if request.method == "s3_oneshot":
-            return self._run(s3_oneshot_field_task, **common, config=self.s3_oneshot)
+            with tags(*device_tags(self.s3_oneshot.device if self.s3_oneshot is not None else "auto")):
+                return self._run(s3_oneshot_field_task, **common, config=self.s3_oneshot)
         refine = {"refine_prints": [earlier[i].motion for i in request.refine_on]} if request.refine_on else {}
         if request.warm_start is not None:
             refine["warm_start"] = earlier[request.warm_start].field
-        return self._run(field_task, **common, config=request.neural, user_field=inputs.user, **refine)
+        with tags(*device_tags(request.neural.device if request.objectives else None)):
+            return self._run(field_task, **common, config=request.neural, user_field=inputs.user, **refine)
 
     def layers(self, model: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, config: LayerConfig) -> ArtifactRef:
         """The layers step."""
@@ -202,14 +220,16 @@ def slice_run_name() -> str:
 
 
 def publish_report(name: str, out_dir: str) -> str | None:
-    """The run's report.md as a Prefect markdown artifact (key ``slice-<model>``); the key, or None without a report."""
+    """The run's report.md as a Prefect markdown artifact (key ``slice-<model>``), its figures embedded (the UI
+    cannot follow a relative link); the key, or None without a report."""
     from prefect.artifacts import create_markdown_artifact
 
     report = Path(out_dir) / "report.md"
     if not report.is_file():
         return None
     key = artifact_key(f"slice-{name}")
-    create_markdown_artifact(key=key, markdown=report.read_text(), description=f"Neural Slicer report: {name} ({out_dir})")
+    create_markdown_artifact(key=key, markdown=embed_figures(report.read_text(), report.parent),
+                             description=f"Neural Slicer report: {name} ({out_dir})")
     return key
 
 
@@ -243,3 +263,4 @@ def slice_flow(
 def ensure_store(store: str) -> str:
     """Create the store if needed and return its canonical location."""
     return ArtifactStore(store).root
+

@@ -3,22 +3,27 @@ from __future__ import annotations
 
 import re
 import time
-from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from prefect import flow, get_run_logger
+from prefect.states import Failed, State
 from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
-from neuralslicer.flows.settings import cache_settings
+from neuralslicer.flows.settings import cache_settings, quiet_input_errors
 from neuralslicer.flows.branch import Branch, load_branch_spec, make_user_field, study_branch
 from neuralslicer.flows.study_report import write_study_outputs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
+from neuralslicer.preflight import check_slice
 from neuralslicer.storage import ArtifactStore, default_store
 
 INIT_KINDS = ("height", "heat", "user")
+
+# a deployment's flow run loads this module before Prefect validates the run's parameters: from here on, Prefect's
+# records of bad input (an InputError, a parameter that fails validation) carry no traceback; the state says it
+quiet_input_errors()
 
 
 class StudyOptions(BaseModel):
@@ -226,48 +231,91 @@ def _options(out_dir: str, store: str | None, config: SliceConfig | dict | None,
                         dask_workers=dask_workers, max_workers=max_workers)
 
 
-@flow(name="neuralslicer-study-initial-guess")
-def initial_guess_study(model: str, out_dir: str, up: str | None = None, store: str | None = None,
+#: the up axes and units a deployment's parameters offer (the UI's choices); None keeps the spec's own
+UpAxis = Literal["x", "y", "z", "-x", "-y", "-z"]
+Units = Literal["mm", "cm", "m", "in"]
+
+
+def failed_on_input(exc: InputError) -> State:
+    """The final state of a flow run stopped by bad input: Failed, its message the one line the command line would
+    print (also the run log's one error line), no traceback anywhere (``quiet_input_errors``)."""
+    get_run_logger().error("%s", exc)
+    return Failed(message=str(exc), data=exc)
+
+
+def check_deployed(models: list[str], options: StudyOptions) -> None:
+    """A deployment's run of a study: the command line's checks of every model before any branch starts (the command
+    line checks them itself, naming its flags, before it calls the flow)."""
+    from prefect.runtime import deployment
+
+    if deployment.id is None:
+        return
+    store = options.store or default_store(options.out_dir)
+    for model in models:
+        check_slice(model, Path(options.out_dir), store, options.config, up=options.up)
+
+
+@flow(name="neuralslicer-study-initial-guess", persist_result=False)
+def initial_guess_study(model: str, out_dir: str, up: UpAxis | None = None, store: str | None = None,
                         config: SliceConfig | None = None, kinds: list[str] | None = None,
                         user_field: str | None = None, dask: str | None = None, dask_workers: int = 2,
-                        max_workers: int | None = None) -> dict[str, Any]:
+                        max_workers: int | None = None) -> dict[str, Any] | State:
     """Initial-guess study of one model: height, heat and a user field, learning curves overlaid."""
     options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
-    branches = initial_guess_branches(str(Path(model).resolve()), options, kinds, user_field)
+    try:
+        check_deployed([model], options)
+        branches = initial_guess_branches(str(Path(model).resolve()), options, kinds, user_field)
+    except InputError as exc:
+        return failed_on_input(exc)
     return run_study("initial-guess", f"Initial-guess study: {Path(model).name}", branches, options)
 
 
-@flow(name="neuralslicer-study-cages")
-def cage_study(model: str, out_dir: str, cage_elements: list[int], up: str | None = None, store: str | None = None,
+@flow(name="neuralslicer-study-cages", persist_result=False)
+def cage_study(model: str, out_dir: str, cage_elements: list[int], up: UpAxis | None = None, store: str | None = None,
                config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
-               max_workers: int | None = None) -> dict[str, Any]:
+               max_workers: int | None = None) -> dict[str, Any] | State:
     """Cage-resolution study of one model: genus, step time, final losses and metrics per cage element count."""
     options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
-    branches = cage_branches(str(Path(model).resolve()), options, cage_elements)
+    try:
+        check_deployed([model], options)
+        branches = cage_branches(str(Path(model).resolve()), options, cage_elements)
+    except InputError as exc:
+        return failed_on_input(exc)
     return run_study("cages", f"Cage-resolution study: {Path(model).name}", branches, options)
 
 
-@flow(name="neuralslicer-study-batch")
-def batch_study(models: list[str], out_dir: str, up: str | None = None, store: str | None = None,
+@flow(name="neuralslicer-study-batch", persist_result=False)
+def batch_study(models: list[str], out_dir: str, up: UpAxis | None = None, store: str | None = None,
                 config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
-                max_workers: int | None = None) -> dict[str, Any]:
+                max_workers: int | None = None) -> dict[str, Any] | State:
     """Batch: slice every model (file or spec) with the shared configuration, fanned out."""
     options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)
-    return run_study("batch", f"Batch of {len(models)} model(s)", batch_branches(models, options), options)
+    try:
+        check_deployed(models, options)
+        branches = batch_branches(models, options)
+    except InputError as exc:
+        return failed_on_input(exc)
+    return run_study("batch", f"Batch of {len(models)} model(s)", branches, options)
 
 
-@flow(name="neuralslicer-slice-model")
-def slice_model(model: str, out_dir: str, up: str | None = None, store: str | None = None,
-                config: SliceConfig | None = None) -> dict[str, Any]:
-    """Slice one model file/spec (deployment-friendly parameters): the slicing flow with the store's cache settings."""
+@flow(name="neuralslicer-slice-model", persist_result=False)
+def slice_model(model: str, out_dir: str, up: UpAxis | None = None, units: Units | None = None,
+                store: str | None = None, config: SliceConfig | None = None, force: bool = False
+                ) -> dict[str, Any] | State:
+    """Slice one model file or spec (a deployment's flow): the command line's preflight, then the slicing flow.
+
+    ``up`` / ``units`` override the model's only when given (a spec keeps its own); ``force``: slice past the layer
+    count limit. Bad input fails the run with one line in its state (the parameter it names), no traceback."""
     from neuralslicer.flows.slice import slice_flow
 
-    spec = load_branch_spec(str(Path(model).resolve()), up)
-    out = Path(out_dir).resolve()
-    store_root = ArtifactStore(store or default_store(out)).root
     cfg = config if isinstance(config, SliceConfig) else SliceConfig.model_validate(config or {})
-    with ExitStack() as stack:
-        stack.enter_context(cache_settings(store_root))
+    out = Path(out_dir).resolve()
+    try:
+        spec = check_slice(model, out, store or default_store(out), cfg, up=up, units=units, force=force)
+        store_root = ArtifactStore(store or default_store(out)).root
+    except InputError as exc:
+        return failed_on_input(exc)
+    with cache_settings(store_root):
         return slice_flow(spec=spec, out_dir=str(out), config=cfg, store=store_root)
 
 

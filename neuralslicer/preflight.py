@@ -13,7 +13,7 @@ from neuralslicer.fea.grid import SolidLike, voxelize
 from neuralslicer.fea.solver import check_spec, fixed_dofs, load_vector
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.model.solid import Solid
-from neuralslicer.model.spec import ModelSpec
+from neuralslicer.model.spec import ModelSpec, load_model
 from neuralslicer.motion.profile import MachineProfile, load_profile
 
 @dataclass(frozen=True)
@@ -143,3 +143,18 @@ def preflight(spec: ModelSpec, solid: Solid, config: SliceConfig, out_dir: Path,
             raise InputError(spec.source or "model", "strength (sr), the verification and toolpath.infill: stress need the "
                              "spec's 'fea' block (supports and loads)")
         check_fea_regions(solid, spec.fea)
+
+
+def check_slice(model: str | Path, out_dir: Path, store: str, config: SliceConfig, up: str | None = None,
+                units: str | None = None, force: bool = False, names: Names = Names()) -> ModelSpec:
+    """The spec of a model file or spec YAML (its own ``up`` and ``units`` unless given) after every check of
+    :func:`preflight`: what the command line and a deployed flow run before any work."""
+    from neuralslicer.model.solid import implicit_solid
+
+    path = Path(model)
+    if not path.exists():
+        raise InputError(model, "no such file")
+    spec = load_model(path, up, units)
+    solid = implicit_solid(spec)  # reads every file of the spec: bad input fails here with one line
+    preflight(spec, solid, config, Path(out_dir), store, force=force, needs_fea=config.needs_fea(spec), names=names)
+    return spec

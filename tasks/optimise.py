@@ -37,7 +37,7 @@ class StoreCheckpoints:
         if not names:
             return None
         self.resumed_from = int(self.store.attrs(f"{self.root}/{names[-1]}")["step"])
-        get_run_logger().info("resuming the optimisation from step %d", self.resumed_from)
+        say(f"resuming the optimisation from step {self.resumed_from}")
         return self.store.read_blob(f"{self.root}/{names[-1]}")
 
 

@@ -4,6 +4,7 @@ seconds (so a run whose output goes to a file or a scheduler's log can be follow
 as Prefect INFO logs."""
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from types import TracebackType
@@ -20,13 +21,32 @@ from prefect.context import FlowRunContext, TaskRunContext
 LINE_EVERY_S = 10.0
 
 
+def console_prints_info(logger: logging.Logger) -> bool:
+    """True when an INFO record of ``logger`` reaches a Prefect console handler that prints it (a worker's or a served
+    run's output, Prefect's default; not the command line's, whose console handler shows warnings only)."""
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    if not logger.isEnabledFor(logging.INFO):
+        return False
+    node: logging.Logger | None = logger
+    while node is not None:
+        if any(isinstance(h, PrefectConsoleHandler) and h.level <= logging.INFO for h in node.handlers):
+            return True
+        node = node.parent if node.propagate else None
+    return False
+
+
 def say(message: str) -> None:
-    """One line on stderr (plain text when it is not a terminal) and in the Prefect run log."""
-    rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
+    """One line in the Prefect run log (INFO) and on stderr (plain text when it is not a terminal), once: where
+    Prefect's console prints the run log's INFO records, that line is the terminal's."""
     try:
-        get_run_logger().info(message)
+        logger = get_run_logger()
     except Exception:  # noqa: BLE001 - outside a flow or task run there is no run logger
-        pass
+        logger = None
+    if logger is None or not console_prints_info(logger.logger):
+        rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
+    if logger is not None:
+        logger.info(message)
 
 
 class Progress:
