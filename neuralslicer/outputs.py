@@ -6,9 +6,12 @@ atomically; reading them from a store is the tasks' business.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import shutil
+import sys
 import uuid
+import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -21,7 +24,7 @@ import trimesh
 from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.verify import PART_FIGURES, strain_gains
-from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
+from neuralslicer.fileio import atomic_path, save_vtk_xml, write_json_atomic, write_text_atomic
 from neuralslicer.gcode.printpoints import write_printpoints_json
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
@@ -123,8 +126,7 @@ def write_field_vtu(path: Path, field: ScalarField) -> None:
     grid.point_data["G"] = field.G
     grid.cell_data["lpd"] = field.lpd()
     grid.cell_data["grad_norm"] = np.linalg.norm(field.gradients(), axis=1)
-    with atomic_path(path) as tmp:
-        grid.save(tmp)
+    save_vtk_xml(grid, path)
 
 
 def write_layers(layers_dir: Path, meshes: list[trimesh.Trimesh]) -> None:
@@ -349,18 +351,98 @@ def strength_table(figures: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: ``NEURALSLICER_FIGURE_PROCESS=0`` draws the report's figures in the exporting process, after the files
+FIGURE_PROCESS_ENV = "NEURALSLICER_FIGURE_PROCESS"
+#: seconds the export waits for the figures' process before it draws them itself
+FIGURE_PROCESS_TIMEOUT_S = 600.0
+
+
+def _figure_process_wanted() -> bool:
+    """Whether the figures can be drawn in a forked process beside the files: Linux (fork is safe with the
+    libraries loaded here), more than one core to run on, and not turned off."""
+    if os.environ.get(FIGURE_PROCESS_ENV, "1").strip().lower() in ("0", "false", "no", "off"):
+        return False
+    if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
+        return False
+    try:
+        return len(os.sched_getaffinity(0)) > 1
+    except (AttributeError, OSError):
+        return (os.cpu_count() or 1) > 1
+
+
+def _draw_figures_into(conn: Any, figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> None:
+    """The figures' process: draw them and send back their captions (or the error's words)."""
+    try:
+        conn.send(("ok", draw_figures(figs, run, alpha_deg, beta_deg)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which draws the figures itself
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+class FigureJob:
+    """The report's figures (:func:`draw_figures`), drawn in a forked process while the exporting process writes
+    the meshes, the print files and the metrics (the figures are a third to half of the export, and independent of
+    the rest); drawn in this process when no such process can run (see :func:`_figure_process_wanted`) or when it
+    fails, so the output is the same either way."""
+
+    def __init__(self, figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> None:
+        """Start drawing (in a forked process where possible)."""
+        self.args = (figs, run, alpha_deg, beta_deg)
+        self.process: Any = None
+        if not _figure_process_wanted():
+            return
+        try:
+            ctx = multiprocessing.get_context("fork")
+            self.reader, writer = ctx.Pipe(duplex=False)
+            self.process = ctx.Process(target=_draw_figures_into, args=(writer, *self.args), daemon=True,
+                                       name="neuralslicer-figures")
+            with warnings.catch_warnings():  # Python 3.12+: fork with threads running (Prefect's); the child draws only
+                warnings.simplefilter("ignore", DeprecationWarning)
+                self.process.start()
+            writer.close()
+        except OSError:  # no process to be had (limits): draw here
+            self.process = None
+
+    def result(self) -> dict[str, str]:
+        """{caption: path relative to the output folder} of the figures drawn."""
+        if self.process is not None:
+            process, self.process = self.process, None
+            answer: Any = None
+            try:
+                if self.reader.poll(FIGURE_PROCESS_TIMEOUT_S):
+                    answer = self.reader.recv()
+            except (EOFError, OSError):
+                answer = None
+            finally:
+                self.reader.close()
+                if process.is_alive():
+                    process.join(timeout=5.0)
+                if process.is_alive():
+                    process.kill()
+                    process.join()
+            if answer is not None and answer[0] == "ok":
+                return answer[1]
+            reason = answer[1] if answer is not None else f"it ended with status {process.exitcode}"
+            warnings.warn(f"the figures' process failed ({reason}); drawing them in this process", stacklevel=2)
+        return draw_figures(*self.args)
+
+
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
                   ) -> dict[str, Any]:
     """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, figures, metrics.json and
-    report.md to ``out_dir``; returns the metrics."""
+    report.md to ``out_dir``; returns the metrics. The figures are drawn in a second process meanwhile
+    (:class:`FigureJob`)."""
     d = Path(out_dir)
+    run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
+    job = FigureJob(d / "figures", run, alpha_deg, beta_deg)
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
     write_field_vtu(d / "field.vtu", run.field)
     write_layers(d / "layers", run.layers.meshes)
     write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode)
     metrics = run_metrics(run, alpha_deg, beta_deg)
-    figures = draw_figures(d / "figures", run, alpha_deg, beta_deg)
+    figures = job.result()
     sections = {}
     if run.verify is not None and run.verify[1].get("parts"):
         sections["Strength of the printed part"] = strength_table(run.verify[1])
