@@ -3,9 +3,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from pydantic import BaseModel, Field
 
 from neuralslicer.cage import interior_points
@@ -14,6 +14,10 @@ from neuralslicer.layers.marching import marching_batch, tet_edges
 from neuralslicer.layers.trim import trim
 from neuralslicer.model.solid import Solid
 from neuralslicer.scalar_field import ScalarField
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
+
 
 class LayerConfig(BaseModel):
     """How layers are chosen and trimmed."""
@@ -62,6 +66,8 @@ class Layers:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Layers:
         """Rebuild from store arrays."""
+        import trimesh
+
         nv, nf = arrays["vertex_offsets"], arrays["face_offsets"]
         meshes = []
         for i, iso in enumerate(arrays["isovalues"]):
@@ -173,6 +179,8 @@ def _layer_mesh(
     pts: np.ndarray, faces: np.ndarray, face_lpd: np.ndarray, min_area: float
 ) -> tuple[trimesh.Trimesh | None, int, float]:
     """One layer's mesh with per-vertex LPD (area-weighted), small pieces dropped; None when nothing is left."""
+    import trimesh
+
     if len(faces) == 0:
         return None, 0, 0.0
     used, inv = np.unique(faces, return_inverse=True)
@@ -187,6 +195,8 @@ def _layer_mesh(
 
 def _drop_small_pieces(mesh: trimesh.Trimesh, min_area: float) -> tuple[trimesh.Trimesh, int, float]:
     """Remove connected pieces whose area is below min_area."""
+    import trimesh
+
     if min_area <= 0 or len(mesh.faces) == 0:
         return mesh, 0, 0.0
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))

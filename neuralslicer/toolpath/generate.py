@@ -2,10 +2,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from neuralslicer.errors import InputError
@@ -18,6 +17,10 @@ from neuralslicer.toolpath.stress_infill import (StressPotential, delaunay_flips
                                                  stress_region)
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
+
 
 #: path kinds: contour-parallel shells, regular infill (zig-zag or contour), stress-following infill
 SHELL, INFILL, STRESS = 0, 1, 2
