@@ -10,8 +10,10 @@ import multiprocessing
 import os
 import shutil
 import sys
+import time
 import uuid
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -225,23 +227,36 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     return metrics
 
 
-def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
-    """The report's pictures under ``figs``: {caption: path relative to the output folder}."""
+#: a piece of the export that depends on nothing else written: it writes its files and returns the report's
+#: figures it drew, {caption: path relative to the output folder} (empty for other files)
+Job = Callable[[], dict[str, str]]
+
+
+def figure_jobs(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> list[tuple[float, Job]]:
+    """The report's pictures under ``figs`` as independent jobs, in the report's order, each with a rough cost
+    (seconds on the ring) by which :class:`ExportJobs` starts the longest first."""
     B, keep, lpd = run.samples, ~run.samples.on_platform, run.lpd_b
     planar = np.tile(PLANAR, (len(B.points), 1))
-    figures = {}
-    renderer = plot_layers_3d(figs / "layers.png", run.layers.meshes)
-    figures[f"Layers ({renderer})"] = "figures/layers.png"
-    plot_overhang_map(figs / "overhang_map.png", B.points, B.normals, {"planar": planar, "computed": lpd}, alpha_deg,
-                      B.areas, B.on_platform)
-    figures["Overhang map (planar vs computed)"] = "figures/overhang_map.png"
-    plot_angle_histogram(
-        figs / "sf_histogram.png",
-        {"planar": support_angles(B.normals[keep], planar[keep]), "computed": support_angles(B.normals[keep], lpd[keep])},
-        B.areas[keep], alpha_deg, "overhang angle asin(-n·d) (°)", "support-free: surface samples B",
-    )
-    figures["Support-free angle histogram"] = "figures/sf_histogram.png"
-    if run.stress is not None:
+    tp = run.toolpaths
+
+    def layers() -> dict[str, str]:
+        return {f"Layers ({plot_layers_3d(figs / 'layers.png', run.layers.meshes)})": "figures/layers.png"}
+
+    def overhang() -> dict[str, str]:
+        plot_overhang_map(figs / "overhang_map.png", B.points, B.normals, {"planar": planar, "computed": lpd},
+                          alpha_deg, B.areas, B.on_platform)
+        return {"Overhang map (planar vs computed)": "figures/overhang_map.png"}
+
+    def sf_histogram() -> dict[str, str]:
+        plot_angle_histogram(
+            figs / "sf_histogram.png",
+            {"planar": support_angles(B.normals[keep], planar[keep]),
+             "computed": support_angles(B.normals[keep], lpd[keep])},
+            B.areas[keep], alpha_deg, "overhang angle asin(-n·d) (°)", "support-free: surface samples B",
+        )
+        return {"Support-free angle histogram": "figures/sf_histogram.png"}
+
+    def sr_histogram() -> dict[str, str]:
         T, lpd_t = run.stress, run.lpd_t
         plot_angle_histogram(
             figs / "sr_histogram.png",
@@ -249,25 +264,51 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
              "computed": strength_angles(T.tau_max, lpd_t)},
             T.volumes, beta_deg, "angle between tau_max and the layer (°)", "strength: stress samples T",
         )
-        figures["Strength angle histogram"] = "figures/sr_histogram.png"
-    if run.verify is not None:
-        figures.update(draw_strength_figures(figs, *run.verify))
-    if run.strength_rounds:
+        return {"Strength angle histogram": "figures/sr_histogram.png"}
+
+    def stress_turn() -> dict[str, str]:
         plot_stress_turn(figs / "stress_turn.png", {r.label: r.turn for r in run.strength_rounds}, beta_deg)
-        figures["tau_max of the printed part against the isotropic one, per strength round"] = "figures/stress_turn.png"
-    if run.field_history:
+        return {"tau_max of the printed part against the isotropic one, per strength round": "figures/stress_turn.png"}
+
+    def learning() -> dict[str, str]:
         plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
-        figures["Learning curves"] = "figures/learning_curves.png"
-    plot_toolpaths_png(figs / "toolpaths.png", run.toolpaths)
-    figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
-    tp = run.toolpaths
-    plot_layer_toolpaths(figs / "layer_toolpaths.png", tp)
-    figures["Toolpaths of representative layers"] = "figures/layer_toolpaths.png"
-    plot_thickness_map(figs / "bead_thickness.png", tp.xyz, tp.thickness, tp.extrude,
-                       run.program.profile.nozzle.bead_thickness_mm, gaps=run.print_metrics.get("beads"))
-    figures["Bead thickness"] = "figures/bead_thickness.png"
-    plot_collision_map(figs / "collisions.png", run.collision_maps)
-    figures["Print head collisions (red)"] = "figures/collisions.png"
+        return {"Learning curves": "figures/learning_curves.png"}
+
+    def toolpaths() -> dict[str, str]:
+        plot_toolpaths_png(figs / "toolpaths.png", tp)
+        return {"Toolpaths (colour = print order)": "figures/toolpaths.png"}
+
+    def layer_toolpaths() -> dict[str, str]:
+        plot_layer_toolpaths(figs / "layer_toolpaths.png", tp)
+        return {"Toolpaths of representative layers": "figures/layer_toolpaths.png"}
+
+    def thickness() -> dict[str, str]:
+        plot_thickness_map(figs / "bead_thickness.png", tp.xyz, tp.thickness, tp.extrude,
+                           run.program.profile.nozzle.bead_thickness_mm, gaps=run.print_metrics.get("beads"))
+        return {"Bead thickness": "figures/bead_thickness.png"}
+
+    def collisions() -> dict[str, str]:
+        plot_collision_map(figs / "collisions.png", run.collision_maps)
+        return {"Print head collisions (red)": "figures/collisions.png"}
+
+    jobs: list[tuple[float, Job]] = [(0.8, layers), (0.8, overhang), (0.1, sf_histogram)]
+    if run.stress is not None:
+        jobs.append((0.1, sr_histogram))
+    if run.verify is not None:
+        jobs.append((2.0, lambda: draw_strength_figures(figs, *run.verify)))
+    if run.strength_rounds:
+        jobs.append((0.3, stress_turn))
+    if run.field_history:
+        jobs.append((0.35, learning))
+    jobs += [(0.45, toolpaths), (0.5, layer_toolpaths), (0.6, thickness), (0.3, collisions)]
+    return jobs
+
+
+def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
+    """The report's pictures under ``figs``: {caption: path relative to the output folder}."""
+    figures: dict[str, str] = {}
+    for _, job in figure_jobs(figs, run, alpha_deg, beta_deg):
+        figures.update(job())
     return figures
 
 
@@ -351,16 +392,16 @@ def strength_table(figures: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-#: ``NEURALSLICER_FIGURE_PROCESS=0`` draws the report's figures in the exporting process, after the files
-FIGURE_PROCESS_ENV = "NEURALSLICER_FIGURE_PROCESS"
-#: seconds the export waits for the figures' process before it draws them itself
-FIGURE_PROCESS_TIMEOUT_S = 600.0
+#: ``NEURALSLICER_EXPORT_PROCESS=0``: the export's jobs all in the exporting process, one after the other
+EXPORT_PROCESS_ENV = "NEURALSLICER_EXPORT_PROCESS"
+#: seconds the export waits for its helper process's last job before it does that job itself
+EXPORT_PROCESS_TIMEOUT_S = 600.0
 
 
-def _figure_process_wanted() -> bool:
-    """Whether the figures can be drawn in a forked process beside the files: Linux (fork is safe with the
-    libraries loaded here), more than one core to run on, and not turned off."""
-    if os.environ.get(FIGURE_PROCESS_ENV, "1").strip().lower() in ("0", "false", "no", "off"):
+def _helper_wanted() -> bool:
+    """Whether a forked helper process can share the export's jobs: Linux (fork is safe with the libraries loaded
+    here), more than one core to run on, and not turned off."""
+    if os.environ.get(EXPORT_PROCESS_ENV, "1").strip().lower() in ("0", "false", "no", "off"):
         return False
     if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
         return False
@@ -370,79 +411,118 @@ def _figure_process_wanted() -> bool:
         return (os.cpu_count() or 1) > 1
 
 
-def _draw_figures_into(conn: Any, figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> None:
-    """The figures' process: draw them and send back their captions (or the error's words)."""
-    try:
-        conn.send(("ok", draw_figures(figs, run, alpha_deg, beta_deg)))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which draws the figures itself
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
-    finally:
-        conn.close()
+class ExportJobs:
+    """Independent jobs of the export (the report's figures, the toolpaths' CSV and VTP files), shared between this
+    process and a forked helper: the helper starts on them at once, this process joins in once it has written the
+    rest (meshes, G-code, metrics), each taking the next job (the longest first) until none is left. Results
+    come back in the jobs' order. Without a helper (:func:`_helper_wanted`) this process does every job; a job the
+    helper failed, or did not finish because it died, this process does again (so its error, if any, is raised
+    here), and the output is the same either way."""
 
-
-class FigureJob:
-    """The report's figures (:func:`draw_figures`), drawn in a forked process while the exporting process writes
-    the meshes, the print files and the metrics (the figures are a third to half of the export, and independent of
-    the rest); drawn in this process when no such process can run (see :func:`_figure_process_wanted`) or when it
-    fails, so the output is the same either way."""
-
-    def __init__(self, figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> None:
-        """Start drawing (in a forked process where possible)."""
-        self.args = (figs, run, alpha_deg, beta_deg)
+    def __init__(self, jobs: list[tuple[float, Job]]) -> None:
+        """Start the helper (where one can run) on ``jobs`` ((cost, job), in their order)."""
+        self.jobs = [job for _, job in jobs]
+        self.order = sorted(range(len(jobs)), key=lambda i: -jobs[i][0])   # the longest first
+        self.results: dict[int, dict[str, str]] = {}
         self.process: Any = None
-        if not _figure_process_wanted():
+        self.claimed = None
+        if not self.jobs or not _helper_wanted():
             return
         try:
             ctx = multiprocessing.get_context("fork")
+            self.claimed = ctx.Value("i", 0)
             self.reader, writer = ctx.Pipe(duplex=False)
-            self.process = ctx.Process(target=_draw_figures_into, args=(writer, *self.args), daemon=True,
-                                       name="neuralslicer-figures")
-            with warnings.catch_warnings():  # Python 3.12+: fork with threads running (Prefect's); the child draws only
-                warnings.simplefilter("ignore", DeprecationWarning)
+            self.process = ctx.Process(target=self._helper, args=(writer,), daemon=True, name="neuralslicer-export")
+            with warnings.catch_warnings():  # Python 3.12+: fork with threads running (Prefect's); the helper only
+                warnings.simplefilter("ignore", DeprecationWarning)  # draws and writes files
                 self.process.start()
             writer.close()
-        except OSError:  # no process to be had (limits): draw here
-            self.process = None
+        except OSError:  # no process to be had (limits): every job here
+            self.process = self.claimed = None
 
-    def result(self) -> dict[str, str]:
-        """{caption: path relative to the output folder} of the figures drawn."""
+    def _next(self) -> int | None:
+        """The next job to do (an index into ``jobs``), or None when every job is taken."""
+        if self.claimed is None:
+            k = len(self.results)
+        else:
+            with self.claimed.get_lock():
+                k = self.claimed.value
+                self.claimed.value = k + 1
+        return self.order[k] if k < len(self.order) else None
+
+    def _helper(self, conn: Any) -> None:
+        """The helper process: take jobs until none is left, sending back each one's result (or its error)."""
+        try:
+            while (i := self._next()) is not None:
+                try:
+                    conn.send((i, "ok", self.jobs[i]()))
+                except Exception as exc:  # noqa: BLE001 - done again by the parent, which raises it
+                    conn.send((i, "error", f"{type(exc).__name__}: {exc}"))
+        finally:
+            conn.close()
+
+    def finish(self) -> dict[str, str]:
+        """Do jobs here until none is left, wait for the helper's, do again what it failed; the figures'
+        {caption: path relative to the output folder}, in the jobs' order."""
+        mine: set[int] = set()
+        while (i := self._next()) is not None:
+            self.results[i] = self.jobs[i]()
+            mine.add(i)
         if self.process is not None:
-            process, self.process = self.process, None
-            answer: Any = None
-            try:
-                if self.reader.poll(FIGURE_PROCESS_TIMEOUT_S):
-                    answer = self.reader.recv()
-            except (EOFError, OSError):
-                answer = None
-            finally:
-                self.reader.close()
-                if process.is_alive():
-                    process.join(timeout=5.0)
-                if process.is_alive():
-                    process.kill()
-                    process.join()
-            if answer is not None and answer[0] == "ok":
-                return answer[1]
-            reason = answer[1] if answer is not None else f"it ended with status {process.exitcode}"
-            warnings.warn(f"the figures' process failed ({reason}); drawing them in this process", stacklevel=2)
-        return draw_figures(*self.args)
+            self._collect()
+        for i in range(len(self.jobs)):   # what the helper failed or left undone
+            if i not in self.results:
+                self.results[i] = self.jobs[i]()
+        figures: dict[str, str] = {}
+        for i in range(len(self.jobs)):
+            figures.update(self.results[i])
+        return figures
+
+    def _collect(self) -> None:
+        """The helper's results, until it closes its end (or the timeout, when it is stopped)."""
+        process, self.process = self.process, None
+        failed: list[str] = []
+        try:
+            deadline = time.monotonic() + EXPORT_PROCESS_TIMEOUT_S
+            while self.reader.poll(max(0.0, deadline - time.monotonic())):
+                i, status, value = self.reader.recv()
+                if status == "ok":
+                    self.results[i] = value
+                else:
+                    failed.append(value)
+        except (EOFError, OSError):
+            pass
+        finally:
+            self.reader.close()
+            process.join(timeout=5.0)
+            if process.is_alive():
+                process.kill()
+                process.join()
+        if failed or process.exitcode not in (0, None):
+            reason = "; ".join(failed) or f"it ended with status {process.exitcode}"
+            warnings.warn(f"the export's helper process failed ({reason}); doing its jobs here", stacklevel=3)
 
 
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
                   ) -> dict[str, Any]:
     """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, figures, metrics.json and
-    report.md to ``out_dir``; returns the metrics. The figures are drawn in a second process meanwhile
-    (:class:`FigureJob`)."""
+    report.md to ``out_dir``; returns the metrics. The figures and the toolpaths' CSV and VTP are shared with a
+    helper process (:class:`ExportJobs`) while this one writes the rest."""
     d = Path(out_dir)
     run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
-    job = FigureJob(d / "figures", run, alpha_deg, beta_deg)
+    files: list[tuple[float, Job]] = [
+        (1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths))),
+        (0.5, lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))),
+    ]
+    jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
     write_field_vtu(d / "field.vtu", run.field)
     write_layers(d / "layers", run.layers.meshes)
-    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode)
+    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode,
+                        csv=False, vtp=False)
     metrics = run_metrics(run, alpha_deg, beta_deg)
-    figures = job.result()
+    figures = jobs.finish()
     sections = {}
     if run.verify is not None and run.verify[1].get("parts"):
         sections["Strength of the printed part"] = strength_table(run.verify[1])
@@ -493,15 +573,20 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     return json.loads(json.dumps(metrics, default=float))
 
 
+def _quiet(_: Any) -> dict[str, str]:
+    """No figure: what a job that writes a file returns."""
+    return {}
+
+
 def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
-                        *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None
-                        ) -> dict[str, Path]:
-    """Write ``toolpaths/waypoints.csv``, ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
+                        *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None,
+                        csv: bool = True) -> dict[str, Path]:
+    """Write ``toolpaths/waypoints.csv`` (if ``csv``), ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
     ``robot_waypoints.csv``/``.json`` and compas_slicer's ``printpoints.json`` (if ``robot``) and
     ``print_metrics.json`` under ``out_dir``."""
     out = Path(out_dir)
-    files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp),
-             "gcode": write_gcode(out / "print.gcode", program if gcode is None else gcode)}
+    files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp)} if csv else {}
+    files["gcode"] = write_gcode(out / "print.gcode", program if gcode is None else gcode)
     if vtp:
         files["vtp"] = write_toolpaths_vtp(out / "toolpaths.vtp", tp)
     if png:
