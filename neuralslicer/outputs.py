@@ -451,15 +451,20 @@ class ExportJobs:
         return self.order[k] if k < len(self.order) else None
 
     def _helper(self, conn: Any) -> None:
-        """The helper process: take jobs until none is left, sending back each one's result (or its error)."""
+        """The helper process: take jobs until none is left, sending back each one's result (or its error); then
+        leave at once (``os._exit``): the exit handlers it inherited are the parent's (Prefect's services, the local
+        server's), not its own."""
+        status = 1
         try:
             while (i := self._next()) is not None:
                 try:
                     conn.send((i, "ok", self.jobs[i]()))
                 except Exception as exc:  # noqa: BLE001 - done again by the parent, which raises it
                     conn.send((i, "error", f"{type(exc).__name__}: {exc}"))
+            status = 0
         finally:
             conn.close()
+            os._exit(status)
 
     def finish(self) -> dict[str, str]:
         """Do jobs here until none is left, wait for the helper's, do again what it failed; the figures'

@@ -9,7 +9,6 @@ import numpy as np
 from neuralslicer.cage import Cage
 from neuralslicer.errors import InputError
 from neuralslicer.field_step import history_of
-from neuralslicer.fea import FEAResult
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
@@ -23,6 +22,8 @@ from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
 
 if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
     import trimesh
+
+    from neuralslicer.fea.solver import FEAResult
     from neuralslicer.outputs import RunResults, StrengthRound
 
 
@@ -149,6 +150,8 @@ def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
 
 def read_fea(ref: ArtifactRef) -> FEAResult:
     """The isotropic FEA result."""
+    from neuralslicer.fea.solver import FEAResult   # scipy.sparse: only where an FEA is read
+
     return FEAResult.from_arrays(*read(ref))
 
 
