@@ -6,13 +6,9 @@ atomically; reading them from a store is the tasks' business.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import shutil
-import sys
-import time
 import uuid
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -27,6 +23,7 @@ from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.verify import PART_FIGURES, strain_gains
 from neuralslicer.fileio import atomic_path, save_vtk_xml, write_json_atomic, write_text_atomic
+from neuralslicer.forked import SharedJobs
 from neuralslicer.gcode.printpoints import write_printpoints_json
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
@@ -392,120 +389,23 @@ def strength_table(figures: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-#: ``NEURALSLICER_EXPORT_PROCESS=0``: the export's jobs all in the exporting process, one after the other
-EXPORT_PROCESS_ENV = "NEURALSLICER_EXPORT_PROCESS"
-#: seconds the export waits for its helper process's last job before it does that job itself
-EXPORT_PROCESS_TIMEOUT_S = 600.0
-
-
-def _helper_wanted() -> bool:
-    """Whether a forked helper process can share the export's jobs: Linux (fork is safe with the libraries loaded
-    here), more than one core to run on, and not turned off."""
-    if os.environ.get(EXPORT_PROCESS_ENV, "1").strip().lower() in ("0", "false", "no", "off"):
-        return False
-    if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
-        return False
-    try:
-        return len(os.sched_getaffinity(0)) > 1
-    except (AttributeError, OSError):
-        return (os.cpu_count() or 1) > 1
-
-
 class ExportJobs:
-    """Independent jobs of the export (the report's figures, the toolpaths' CSV and VTP files), shared between this
-    process and a forked helper: the helper starts on them at once, this process joins in once it has written the
-    rest (meshes, G-code, metrics), each taking the next job (the longest first) until none is left. Results
-    come back in the jobs' order. Without a helper (:func:`_helper_wanted`) this process does every job; a job the
-    helper failed, or did not finish because it died, this process does again (so its error, if any, is raised
-    here), and the output is the same either way."""
+    """Independent jobs of the export (the report's figures, the toolpaths' CSV and VTP files), shared with a forked
+    helper process (:class:`neuralslicer.forked.SharedJobs`, the longest first): it starts on them at once, this
+    process joins in once it has written the rest (meshes, G-code, metrics); the figures come back in the jobs'
+    order whoever drew them."""
 
     def __init__(self, jobs: list[tuple[float, Job]]) -> None:
-        """Start the helper (where one can run) on ``jobs`` ((cost, job), in their order)."""
-        self.jobs = [job for _, job in jobs]
-        self.order = sorted(range(len(jobs)), key=lambda i: -jobs[i][0])   # the longest first
-        self.results: dict[int, dict[str, str]] = {}
-        self.process: Any = None
-        self.claimed = None
-        if not self.jobs or not _helper_wanted():
-            return
-        try:
-            ctx = multiprocessing.get_context("fork")
-            self.claimed = ctx.Value("i", 0)
-            self.reader, writer = ctx.Pipe(duplex=False)
-            self.process = ctx.Process(target=self._helper, args=(writer,), daemon=True, name="neuralslicer-export")
-            with warnings.catch_warnings():  # Python 3.12+: fork with threads running (Prefect's); the helper only
-                warnings.simplefilter("ignore", DeprecationWarning)  # draws and writes files
-                self.process.start()
-            writer.close()
-        except OSError:  # no process to be had (limits): every job here
-            self.process = self.claimed = None
-
-    def _next(self) -> int | None:
-        """The next job to do (an index into ``jobs``), or None when every job is taken."""
-        if self.claimed is None:
-            k = len(self.results)
-        else:
-            with self.claimed.get_lock():
-                k = self.claimed.value
-                self.claimed.value = k + 1
-        return self.order[k] if k < len(self.order) else None
-
-    def _helper(self, conn: Any) -> None:
-        """The helper process: take jobs until none is left, sending back each one's result (or its error); then
-        leave at once (``os._exit``): the exit handlers it inherited are the parent's (Prefect's services, the local
-        server's), not its own."""
-        status = 1
-        try:
-            while (i := self._next()) is not None:
-                try:
-                    conn.send((i, "ok", self.jobs[i]()))
-                except Exception as exc:  # noqa: BLE001 - done again by the parent, which raises it
-                    conn.send((i, "error", f"{type(exc).__name__}: {exc}"))
-            status = 0
-        finally:
-            conn.close()
-            os._exit(status)
+        """Start the helper (where one can run) on ``jobs`` ((cost, job), in the report's order)."""
+        self.shared = SharedJobs([job for _, job in jobs], [cost for cost, _ in jobs])
 
     def finish(self) -> dict[str, str]:
-        """Do jobs here until none is left, wait for the helper's, do again what it failed; the figures'
-        {caption: path relative to the output folder}, in the jobs' order."""
-        mine: set[int] = set()
-        while (i := self._next()) is not None:
-            self.results[i] = self.jobs[i]()
-            mine.add(i)
-        if self.process is not None:
-            self._collect()
-        for i in range(len(self.jobs)):   # what the helper failed or left undone
-            if i not in self.results:
-                self.results[i] = self.jobs[i]()
+        """Do the jobs left here and wait for the helper's: the figures' {caption: path relative to the output
+        folder}, in the jobs' order."""
         figures: dict[str, str] = {}
-        for i in range(len(self.jobs)):
-            figures.update(self.results[i])
+        for drawn in self.shared.finish():
+            figures.update(drawn)
         return figures
-
-    def _collect(self) -> None:
-        """The helper's results, until it closes its end (or the timeout, when it is stopped)."""
-        process, self.process = self.process, None
-        failed: list[str] = []
-        try:
-            deadline = time.monotonic() + EXPORT_PROCESS_TIMEOUT_S
-            while self.reader.poll(max(0.0, deadline - time.monotonic())):
-                i, status, value = self.reader.recv()
-                if status == "ok":
-                    self.results[i] = value
-                else:
-                    failed.append(value)
-        except (EOFError, OSError):
-            pass
-        finally:
-            self.reader.close()
-            process.join(timeout=5.0)
-            if process.is_alive():
-                process.kill()
-                process.join()
-        if failed or process.exitcode not in (0, None):
-            reason = "; ".join(failed) or f"it ended with status {process.exitcode}"
-            warnings.warn(f"the export's helper process failed ({reason}); doing its jobs here", stacklevel=3)
 
 
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False

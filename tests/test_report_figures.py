@@ -195,9 +195,10 @@ def test_export_jobs_give_every_result_in_order_with_or_without_a_helper(tmp_pat
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """The export's independent jobs (figures, the toolpaths' files) shared with a forked helper process: every job
     runs once, its files are written, and the figures come back in the jobs' order whoever did them."""
-    from neuralslicer.outputs import EXPORT_PROCESS_ENV, ExportJobs
+    from neuralslicer.forked import FORK_ENV
+    from neuralslicer.outputs import ExportJobs
 
-    monkeypatch.setenv(EXPORT_PROCESS_ENV, helper)
+    monkeypatch.setenv(FORK_ENV, helper)
     jobs = [(float(i % 3), (lambda i=i: _write(tmp_path / f"f{i}.txt", f"job {i}"))) for i in range(7)]
     figures = ExportJobs(jobs).finish()
     assert list(figures) == [f"job {i}" for i in range(7)]

@@ -10,6 +10,7 @@ from pydantic import BaseModel, Field
 
 from neuralslicer.cage import interior_points
 from neuralslicer.errors import InputError
+from neuralslicer.forked import shared_map
 from neuralslicer.layers.marching import marching_batch, tet_edges
 from neuralslicer.layers.trim import trim
 from neuralslicer.model.solid import Solid
@@ -145,13 +146,15 @@ def extract_layers(
 ) -> Layers:
     """Isosurfaces of G at the isovalues, trimmed by H <= 0, small pieces dropped, in print order.
 
-    Layers are trimmed in batches (one H evaluation per batch and crossing iteration, not per layer).
+    Layers are trimmed in batches (one H evaluation per batch and crossing iteration, not per layer); the batches,
+    independent of each other, are shared with a forked helper process (:func:`neuralslicer.forked.shared_map`).
     """
     edges, tet_edge = tet_edges(cage_tets)
     meshes, kept_iso = [], []
     dropped_pieces, dropped_area = 0, 0.0
-    for start in range(0, len(isovalues), batch):
-        isos = np.asarray(isovalues[start : start + batch])
+
+    def trimmed(isos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One batch: its isosurfaces trimmed, (points, faces, source tet and layer in the batch per face)."""
         parts = marching_batch(cage_vertices, cage_tets, G, isos, lpd, edges, tet_edge)
         offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
         pts = np.concatenate([p for p, _, _ in parts])
@@ -161,6 +164,12 @@ def extract_layers(
         if len(faces):
             pts, faces, src = trim(pts, faces, H, config.trim_iterations, config.trim_rounds, config.trim_tolerance)
             src_tet, face_layer = src_tet[src], face_layer[src]
+        return pts, faces, src_tet, face_layer
+
+    starts = range(0, len(isovalues), batch)
+    batches = [np.asarray(isovalues[start : start + batch]) for start in starts]
+    done = shared_map([lambda isos=isos: trimmed(isos) for isos in batches], [float(len(b)) for b in batches])
+    for start, isos, (pts, faces, src_tet, face_layer) in zip(starts, batches, done):
         for i, iso in enumerate(isos):
             mesh, n_drop, a_drop = _layer_mesh(pts, faces[face_layer == i], lpd[src_tet[face_layer == i]], config.min_area)
             dropped_pieces += n_drop
