@@ -65,8 +65,8 @@ class SharedJobs(Generic[T]):
                 warnings.simplefilter("ignore", DeprecationWarning)  # helper only computes and writes files
                 self.process.start()
             writer.close()
-        except OSError:  # no process to be had (limits): every job here
-            self.process = self.claimed = None
+        except (OSError, AssertionError):  # no process to be had (limits), or this one is a daemon (a Dask worker's,
+            self.process = self.claimed = None  # a helper's), which may not have children: every job here
 
     def _next(self) -> int | None:
         """The next job to do (an index into ``jobs``), or None when every job is taken."""
