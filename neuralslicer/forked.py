@@ -14,7 +14,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import sys
-import time
+import threading
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, Generic, TypeVar
@@ -67,6 +67,24 @@ class SharedJobs(Generic[T]):
             writer.close()
         except (OSError, AssertionError):  # no process to be had (limits), or this one is a daemon (a Dask worker's,
             self.process = self.claimed = None  # a helper's), which may not have children: every job here
+            return
+        # the helper's results are received as they come (a result larger than the pipe's buffer would otherwise
+        # hold the helper until this process has done its own share)
+        self._failed: list[str] = []
+        self._receiver = threading.Thread(target=self._receive, name="neuralslicer-helper-results", daemon=True)
+        self._receiver.start()
+
+    def _receive(self) -> None:
+        """The helper's results, until it closes its end of the pipe."""
+        try:
+            while True:
+                i, status, value = self.reader.recv()
+                if status == "ok":
+                    self.results[i] = value
+                else:
+                    self._failed.append(value)
+        except (EOFError, OSError):
+            pass
 
     def _next(self) -> int | None:
         """The next job to do (an index into ``jobs``), or None when every job is taken."""
@@ -107,27 +125,17 @@ class SharedJobs(Generic[T]):
         return [self.results[i] for i in range(len(self.jobs))]
 
     def _collect(self) -> None:
-        """The helper's results, until it closes its end (or the timeout, when it is stopped)."""
+        """Wait for the helper's last result (until the timeout, when the helper is stopped)."""
         process, self.process = self.process, None
-        failed: list[str] = []
-        try:
-            deadline = time.monotonic() + HELPER_TIMEOUT_S
-            while self.reader.poll(max(0.0, deadline - time.monotonic())):
-                i, status, value = self.reader.recv()
-                if status == "ok":
-                    self.results[i] = value
-                else:
-                    failed.append(value)
-        except (EOFError, OSError):
-            pass
-        finally:
-            self.reader.close()
-            process.join(timeout=5.0)
-            if process.is_alive():
-                process.kill()
-                process.join()
-        if failed or process.exitcode not in (0, None):
-            reason = "; ".join(failed) or f"it ended with status {process.exitcode}"
+        self._receiver.join(HELPER_TIMEOUT_S)
+        process.join(timeout=5.0)
+        if process.is_alive():
+            process.kill()
+            process.join()
+        self._receiver.join(5.0)
+        self.reader.close()
+        if self._failed or process.exitcode not in (0, None):
+            reason = "; ".join(self._failed) or f"it ended with status {process.exitcode}"
             warnings.warn(f"the helper process failed ({reason}); doing its jobs here", stacklevel=3)
 
 
