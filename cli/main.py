@@ -44,6 +44,8 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
 
     store = ensure_store(store)
     user_field = args.init if args.init not in (None, "height", "heat") else None
+    if api is not None:
+        api.meanwhile(lambda: warm_imports(config, spec))
     with cache_settings(store):
         def job() -> dict[str, Any]:
             """The flow, run once the API answers."""
@@ -53,6 +55,18 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
         summary = with_api_retry(job)
     print_summary(summary)
     return 0
+
+
+def warm_imports(config: Any, spec: Any) -> None:
+    """Import what the steps of a slice that is not cached will need (torch for the field's optimisation, the
+    plotting libraries of the export: 2-4 s), while the local API server boots: a fresh command waits for it
+    anyway, and the run's tasks then find them imported."""
+    import neuralslicer.gcode.writers  # noqa: F401 - the program step
+    import neuralslicer.motion.pipeline  # noqa: F401 - the toolpaths and motion steps: the planner, scipy
+    import neuralslicer.outputs  # noqa: F401 - the export: matplotlib, pyvista
+
+    if config.objectives_for(spec):
+        import neuralslicer.neural.optimise  # noqa: F401 - torch
 
 
 def print_summary(summary: dict[str, Any]) -> None:

@@ -25,7 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from neuralslicer.flows.settings import API_START_FAILED, prefect_environment
@@ -60,13 +60,16 @@ class LocalApi:
     """A local Prefect API server: one another command left up (``RECORD``), or a process of its own booting in the
     background from construction on."""
 
-    def __init__(self, idle_s: float | None = None) -> None:
-        """Use the server of the record when it answers, else launch one (returns at once)."""
+    def __init__(self, idle_s: float | None = None, home: Path | None = None) -> None:
+        """Use the server of the record when it answers, else launch one (returns at once). ``home``: the Prefect
+        home that keeps the record, when known before Prefect is imported (None: Prefect's settings say)."""
         self.process: subprocess.Popen[bytes] | None = None
         self.port = 0
+        self.home = home
         self.idle_s = idle_seconds() if idle_s is None else idle_s
         self.reused = False
         self._served = False
+        self._meanwhile: list[Callable[[], object]] = []
         self._log = tempfile.TemporaryFile()   # the server's stderr: a file, so that it can never block on a full pipe
         if not (self.idle_s > 0 and self._reuse()):
             self._launch()
@@ -79,12 +82,13 @@ class LocalApi:
 
     def _launch(self) -> None:
         """Start the process of Prefect's server app (the ephemeral server's app and settings, ``flows/api_server``)."""
-        from prefect.settings import get_current_settings
-
         self.port = free_port()
         self.reused = False
-        env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1",
-               **get_current_settings().to_environment_variables(exclude_unset=True)}
+        env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1"}
+        if "prefect" in sys.modules:  # settings made in this process (else the server reads the same environment)
+            from prefect.settings import get_current_settings
+
+            env.update(get_current_settings().to_environment_variables(exclude_unset=True))
         # a session of its own: a SIGTERM or Ctrl-C sent to the command's process group stops the flow, which then
         # reports its end to this server; the server stays for the next command or goes with this one
         self.process = subprocess.Popen(
@@ -93,15 +97,15 @@ class LocalApi:
 
     def _record(self) -> Path:
         """Where a server left up for the next command is recorded (in PREFECT_HOME)."""
+        if self.home is not None:
+            return self.home / RECORD
         from prefect.settings import get_current_settings
 
         return Path(get_current_settings().home) / RECORD
 
     def _identity(self) -> dict[str, str]:
         """What a reused server must share with this command: the interpreter and Prefect's version."""
-        import prefect
-
-        return {"python": sys.executable, "prefect": prefect.__version__}
+        return {"python": sys.executable, "prefect": prefect_version()}
 
     def _reuse(self) -> bool:
         """Take the recorded server when it is of this interpreter and Prefect, alive and answering."""
@@ -137,17 +141,35 @@ class LocalApi:
         with contextlib.suppress(OSError):
             write_json_atomic(self._record(), {"port": self.port, "pid": self.process.pid, **self._identity()})
 
+    def meanwhile(self, work: Callable[[], object]) -> None:
+        """Work for the command to do while it would otherwise wait for a server that is still booting (imports
+        its steps will need); done once, at the first wait, and only then: a server that answers at once (one left
+        up by an earlier command) is not kept waiting for it. Errors in the work are ignored."""
+        self._meanwhile.append(work)
+
+    def _do_meanwhile(self) -> None:
+        """The work registered with :meth:`meanwhile`, once, while the server boots."""
+        work, self._meanwhile = self._meanwhile, []
+        for job in work:
+            try:
+                job()
+            except Exception:  # noqa: BLE001 - only a head start: whatever needs it does it again and says why
+                pass
+
     def wait(self, timeout_s: float) -> None:
         """Block until the API answers its health check; RuntimeError (Prefect's words) after ``timeout_s``."""
         import httpx
 
         if self.reused:
             if self._healthy(timeout_s=5.0):
+                self._meanwhile = []
                 return
             self._launch()                # the recorded server went away: boot a fresh one
         if self.process is None:          # stopped after a failed start: boot a fresh one
             self._launch()
         deadline = time.monotonic() + timeout_s
+        if self._meanwhile and not self._healthy(timeout_s=1.0):
+            self._do_meanwhile()          # the server boots on another core meanwhile
         with httpx.Client() as client:
             while time.monotonic() < deadline:
                 assert self.process is not None
@@ -200,12 +222,50 @@ class LocalApi:
             process.wait()
 
 
-def start_local_api() -> LocalApi | None:
-    """Start a local API server in the background unless an API is configured (PREFECT_API_URL)."""
-    prefect_environment()
+def prefect_version() -> str:
+    """The installed Prefect's version, without importing Prefect when it is not imported yet."""
+    if "prefect" in sys.modules:
+        return str(sys.modules["prefect"].__version__)
+    from importlib.metadata import version
+
+    return version("prefect")
+
+
+def prefect_home() -> Path:
+    """PREFECT_HOME as the environment gives it, before Prefect is imported (Prefect's default: ~/.prefect)."""
+    return Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+
+
+def _configured_home() -> tuple[bool, Path]:
+    """Whether Prefect's settings name an API (PREFECT_API_URL, in the environment, a profile or this process), and
+    its home."""
     from prefect.settings import get_current_settings  # after prefect_environment(): Prefect's logging set-up
 
-    return None if get_current_settings().api.url else LocalApi()
+    settings = get_current_settings()
+    return bool(settings.api.url), Path(settings.home)
+
+
+def start_local_api() -> LocalApi | None:
+    """Start a local API server in the background unless an API is configured (PREFECT_API_URL).
+
+    A command that has not imported Prefect yet takes or launches the server first and imports Prefect (1-2 s)
+    while it boots; should Prefect's settings then name an API after all (a profile's PREFECT_API_URL), that
+    server is stopped."""
+    prefect_environment()
+    if os.environ.get("PREFECT_API_URL"):
+        return None
+    early = "prefect" not in sys.modules
+    if not early and _configured_home()[0]:
+        return None
+    api = LocalApi(home=prefect_home() if early else None)
+    if early:
+        configured, home = _configured_home()
+        if configured:
+            api.stop()
+            api.idle_s = 0.0
+            return None
+        api.home = home   # a profile may keep PREFECT_HOME elsewhere: the record goes there
+    return api
 
 
 @contextlib.contextmanager

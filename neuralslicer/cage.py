@@ -5,10 +5,9 @@ import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pytetwild
-import trimesh
 from pydantic import BaseModel, Field
 
 from neuralslicer.errors import NeuralSlicerError
@@ -16,6 +15,10 @@ from neuralslicer.model.grid import level_set_mesh
 from neuralslicer.model.solid import Solid
 from neuralslicer.tetmesh import TetLocator, boundary_faces, orient_tets, tet_volumes
 from neuralslicer.topology import tet_boundary_genus
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made, pytetwild (and pyvista) only
+    import trimesh  # where a cage is: neither on a cached rerun
+
 
 # fTetWild's envelope (how far its boundary may move from the offset surface), as a fraction of the edge
 ENVELOPE = 0.25
@@ -66,11 +69,15 @@ class Cage:
 
     def surface(self) -> trimesh.Trimesh:
         """The cage boundary as a triangle mesh."""
+        import trimesh
+
         return trimesh.Trimesh(self.vertices, boundary_faces(self.tets), process=True)
 
 
 def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, offset: float, h: float) -> trimesh.Trimesh:
     """The level set H = offset by marching cubes on a grid of spacing h."""
+    import trimesh
+
     lo = bounds[0] - offset - 2 * h
     hi = bounds[1] + offset + 2 * h
     shape = np.ceil((hi - lo) / h).astype(int) + 1
@@ -83,6 +90,8 @@ def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, of
 
 def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, np.ndarray]:
     """fTetWild on the offset surface at an absolute ideal edge length, with an envelope of ENVELOPE * edge."""
+    import pytetwild
+
     diag = float(np.linalg.norm(surface.bounds[1] - surface.bounds[0]))
     tracked = Path("__tracked_surface.stl")  # fTetWild leaves this debug file in the working directory
     existed = tracked.exists()

@@ -3,17 +3,19 @@ as the store keeps them, so that the in-process pipeline and the Prefect tasks c
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage
-from neuralslicer.fea.samples import StressSamples
 from neuralslicer.model.solid import Solid
 from neuralslicer.neural.config import NeuralConfig
-from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
+
+if TYPE_CHECKING:  # types only: the FEA's scipy.sparse and the samples' KD-tree are not needed to read a field
+    from neuralslicer.fea.samples import StressSamples
+    from neuralslicer.samples import SurfaceSamples
 
 Record = tuple[dict[str, np.ndarray], dict[str, Any]]
 Progress = Callable[[int, dict], None]

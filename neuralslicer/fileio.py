@@ -27,6 +27,32 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp.unlink()
 
 
+#: zlib level of the VTK XML files written here (.vtu, .vtp): level 1 writes them 2-4x faster than VTK's default 5
+#: for files under 1 % larger (the ring's toolpaths.vtp: 20.96 MB against 20.82 MB); every reader reads both
+VTK_ZLIB_LEVEL = 1
+
+
+def save_vtk_xml(dataset: Any, path: str | Path) -> None:
+    """Save a VTK/pyvista data set (PolyData: .vtp, UnstructuredGrid: .vtu, ImageData: .vti) as a binary,
+    zlib-compressed (:data:`VTK_ZLIB_LEVEL`) VTK XML file, atomically."""
+    from vtkmodules import vtkIOXML
+
+    writers = {"vtkPolyData": "vtkXMLPolyDataWriter", "vtkUnstructuredGrid": "vtkXMLUnstructuredGridWriter",
+               "vtkImageData": "vtkXMLImageDataWriter"}
+    name = next((w for base, w in writers.items() if dataset.IsA(base)), None)
+    if name is None:
+        raise TypeError(f"no VTK XML writer here for {dataset.GetClassName()}")
+    writer = getattr(vtkIOXML, name)()
+    writer.SetInputData(dataset)
+    writer.SetDataModeToBinary()
+    writer.SetCompressorTypeToZLib()
+    writer.SetCompressionLevel(VTK_ZLIB_LEVEL)
+    with atomic_path(path) as tmp:
+        writer.SetFileName(str(tmp))
+        if writer.Write() != 1:
+            raise OSError(f"VTK could not write {path}")
+
+
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write a text file atomically."""
     with atomic_path(path) as tmp:

@@ -4,10 +4,11 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
+    import trimesh
+
     from neuralslicer.scalar_field import ScalarField
 
 
@@ -45,6 +46,8 @@ def heldout_surface_samples(surface: trimesh.Trimesh, n: int, platform_z: float,
     implicit solid B was drawn from), with their face normals, equal area weights and platform flags (on the
     platform plane within 1e-3 of the bounding-box diagonal, normal pointing down): (points, normals, areas,
     on_platform)."""
+    import trimesh
+
     points, faces = trimesh.sample.sample_surface(surface, n, seed=seed)
     normals = np.asarray(surface.face_normals[faces], np.float64)
     tol = 1e-3 * float(np.linalg.norm(surface.extents))

@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -21,7 +22,8 @@ import trimesh
 from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.verify import PART_FIGURES, strain_gains
-from neuralslicer.fileio import atomic_path, write_json_atomic, write_text_atomic
+from neuralslicer.fileio import atomic_path, save_vtk_xml, write_json_atomic, write_text_atomic
+from neuralslicer.forked import SharedJobs
 from neuralslicer.gcode.printpoints import write_printpoints_json
 from neuralslicer.gcode.robot import write_robot_csv, write_robot_json
 from neuralslicer.gcode.writers import write_gcode
@@ -123,8 +125,7 @@ def write_field_vtu(path: Path, field: ScalarField) -> None:
     grid.point_data["G"] = field.G
     grid.cell_data["lpd"] = field.lpd()
     grid.cell_data["grad_norm"] = np.linalg.norm(field.gradients(), axis=1)
-    with atomic_path(path) as tmp:
-        grid.save(tmp)
+    save_vtk_xml(grid, path)
 
 
 def write_layers(layers_dir: Path, meshes: list[trimesh.Trimesh]) -> None:
@@ -223,23 +224,36 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     return metrics
 
 
-def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
-    """The report's pictures under ``figs``: {caption: path relative to the output folder}."""
+#: a piece of the export that depends on nothing else written: it writes its files and returns the report's
+#: figures it drew, {caption: path relative to the output folder} (empty for other files)
+Job = Callable[[], dict[str, str]]
+
+
+def figure_jobs(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> list[tuple[float, Job]]:
+    """The report's pictures under ``figs`` as independent jobs, in the report's order, each with a rough cost
+    (seconds on the ring) by which :class:`ExportJobs` starts the longest first."""
     B, keep, lpd = run.samples, ~run.samples.on_platform, run.lpd_b
     planar = np.tile(PLANAR, (len(B.points), 1))
-    figures = {}
-    renderer = plot_layers_3d(figs / "layers.png", run.layers.meshes)
-    figures[f"Layers ({renderer})"] = "figures/layers.png"
-    plot_overhang_map(figs / "overhang_map.png", B.points, B.normals, {"planar": planar, "computed": lpd}, alpha_deg,
-                      B.areas, B.on_platform)
-    figures["Overhang map (planar vs computed)"] = "figures/overhang_map.png"
-    plot_angle_histogram(
-        figs / "sf_histogram.png",
-        {"planar": support_angles(B.normals[keep], planar[keep]), "computed": support_angles(B.normals[keep], lpd[keep])},
-        B.areas[keep], alpha_deg, "overhang angle asin(-n·d) (°)", "support-free: surface samples B",
-    )
-    figures["Support-free angle histogram"] = "figures/sf_histogram.png"
-    if run.stress is not None:
+    tp = run.toolpaths
+
+    def layers() -> dict[str, str]:
+        return {f"Layers ({plot_layers_3d(figs / 'layers.png', run.layers.meshes)})": "figures/layers.png"}
+
+    def overhang() -> dict[str, str]:
+        plot_overhang_map(figs / "overhang_map.png", B.points, B.normals, {"planar": planar, "computed": lpd},
+                          alpha_deg, B.areas, B.on_platform)
+        return {"Overhang map (planar vs computed)": "figures/overhang_map.png"}
+
+    def sf_histogram() -> dict[str, str]:
+        plot_angle_histogram(
+            figs / "sf_histogram.png",
+            {"planar": support_angles(B.normals[keep], planar[keep]),
+             "computed": support_angles(B.normals[keep], lpd[keep])},
+            B.areas[keep], alpha_deg, "overhang angle asin(-n·d) (°)", "support-free: surface samples B",
+        )
+        return {"Support-free angle histogram": "figures/sf_histogram.png"}
+
+    def sr_histogram() -> dict[str, str]:
         T, lpd_t = run.stress, run.lpd_t
         plot_angle_histogram(
             figs / "sr_histogram.png",
@@ -247,25 +261,51 @@ def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float)
              "computed": strength_angles(T.tau_max, lpd_t)},
             T.volumes, beta_deg, "angle between tau_max and the layer (°)", "strength: stress samples T",
         )
-        figures["Strength angle histogram"] = "figures/sr_histogram.png"
-    if run.verify is not None:
-        figures.update(draw_strength_figures(figs, *run.verify))
-    if run.strength_rounds:
+        return {"Strength angle histogram": "figures/sr_histogram.png"}
+
+    def stress_turn() -> dict[str, str]:
         plot_stress_turn(figs / "stress_turn.png", {r.label: r.turn for r in run.strength_rounds}, beta_deg)
-        figures["tau_max of the printed part against the isotropic one, per strength round"] = "figures/stress_turn.png"
-    if run.field_history:
+        return {"tau_max of the printed part against the isotropic one, per strength round": "figures/stress_turn.png"}
+
+    def learning() -> dict[str, str]:
         plot_learning_curves(figs / "learning_curves.png", {"field": run.field_history})
-        figures["Learning curves"] = "figures/learning_curves.png"
-    plot_toolpaths_png(figs / "toolpaths.png", run.toolpaths)
-    figures["Toolpaths (colour = print order)"] = "figures/toolpaths.png"
-    tp = run.toolpaths
-    plot_layer_toolpaths(figs / "layer_toolpaths.png", tp)
-    figures["Toolpaths of representative layers"] = "figures/layer_toolpaths.png"
-    plot_thickness_map(figs / "bead_thickness.png", tp.xyz, tp.thickness, tp.extrude,
-                       run.program.profile.nozzle.bead_thickness_mm, gaps=run.print_metrics.get("beads"))
-    figures["Bead thickness"] = "figures/bead_thickness.png"
-    plot_collision_map(figs / "collisions.png", run.collision_maps)
-    figures["Print head collisions (red)"] = "figures/collisions.png"
+        return {"Learning curves": "figures/learning_curves.png"}
+
+    def toolpaths() -> dict[str, str]:
+        plot_toolpaths_png(figs / "toolpaths.png", tp)
+        return {"Toolpaths (colour = print order)": "figures/toolpaths.png"}
+
+    def layer_toolpaths() -> dict[str, str]:
+        plot_layer_toolpaths(figs / "layer_toolpaths.png", tp)
+        return {"Toolpaths of representative layers": "figures/layer_toolpaths.png"}
+
+    def thickness() -> dict[str, str]:
+        plot_thickness_map(figs / "bead_thickness.png", tp.xyz, tp.thickness, tp.extrude,
+                           run.program.profile.nozzle.bead_thickness_mm, gaps=run.print_metrics.get("beads"))
+        return {"Bead thickness": "figures/bead_thickness.png"}
+
+    def collisions() -> dict[str, str]:
+        plot_collision_map(figs / "collisions.png", run.collision_maps)
+        return {"Print head collisions (red)": "figures/collisions.png"}
+
+    jobs: list[tuple[float, Job]] = [(0.8, layers), (0.8, overhang), (0.1, sf_histogram)]
+    if run.stress is not None:
+        jobs.append((0.1, sr_histogram))
+    if run.verify is not None:
+        jobs.append((2.0, lambda: draw_strength_figures(figs, *run.verify)))
+    if run.strength_rounds:
+        jobs.append((0.3, stress_turn))
+    if run.field_history:
+        jobs.append((0.35, learning))
+    jobs += [(0.45, toolpaths), (0.5, layer_toolpaths), (0.6, thickness), (0.3, collisions)]
+    return jobs
+
+
+def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
+    """The report's pictures under ``figs``: {caption: path relative to the output folder}."""
+    figures: dict[str, str] = {}
+    for _, job in figure_jobs(figs, run, alpha_deg, beta_deg):
+        figures.update(job())
     return figures
 
 
@@ -349,18 +389,45 @@ def strength_table(figures: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+class ExportJobs:
+    """Independent jobs of the export (the report's figures, the toolpaths' CSV and VTP files), shared with a forked
+    helper process (:class:`neuralslicer.forked.SharedJobs`, the longest first): it starts on them at once, this
+    process joins in once it has written the rest (meshes, G-code, metrics); the figures come back in the jobs'
+    order whoever drew them."""
+
+    def __init__(self, jobs: list[tuple[float, Job]]) -> None:
+        """Start the helper (where one can run) on ``jobs`` ((cost, job), in the report's order)."""
+        self.shared = SharedJobs([job for _, job in jobs], [cost for cost, _ in jobs])
+
+    def finish(self) -> dict[str, str]:
+        """Do the jobs left here and wait for the helper's: the figures' {caption: path relative to the output
+        folder}, in the jobs' order."""
+        figures: dict[str, str] = {}
+        for drawn in self.shared.finish():
+            figures.update(drawn)
+        return figures
+
+
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
                   ) -> dict[str, Any]:
     """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, figures, metrics.json and
-    report.md to ``out_dir``; returns the metrics."""
+    report.md to ``out_dir``; returns the metrics. The figures and the toolpaths' CSV and VTP are shared with a
+    helper process (:class:`ExportJobs`) while this one writes the rest."""
     d = Path(out_dir)
+    run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
+    files: list[tuple[float, Job]] = [
+        (1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths))),
+        (0.5, lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))),
+    ]
+    jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
     write_field_vtu(d / "field.vtu", run.field)
     write_layers(d / "layers", run.layers.meshes)
-    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode)
+    write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode,
+                        csv=False, vtp=False)
     metrics = run_metrics(run, alpha_deg, beta_deg)
-    figures = draw_figures(d / "figures", run, alpha_deg, beta_deg)
+    figures = jobs.finish()
     sections = {}
     if run.verify is not None and run.verify[1].get("parts"):
         sections["Strength of the printed part"] = strength_table(run.verify[1])
@@ -411,15 +478,20 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     return json.loads(json.dumps(metrics, default=float))
 
 
+def _quiet(_: Any) -> dict[str, str]:
+    """No figure: what a job that writes a file returns."""
+    return {}
+
+
 def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
-                        *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None
-                        ) -> dict[str, Path]:
-    """Write ``toolpaths/waypoints.csv``, ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
+                        *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None,
+                        csv: bool = True) -> dict[str, Path]:
+    """Write ``toolpaths/waypoints.csv`` (if ``csv``), ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
     ``robot_waypoints.csv``/``.json`` and compas_slicer's ``printpoints.json`` (if ``robot``) and
     ``print_metrics.json`` under ``out_dir``."""
     out = Path(out_dir)
-    files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp),
-             "gcode": write_gcode(out / "print.gcode", program if gcode is None else gcode)}
+    files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp)} if csv else {}
+    files["gcode"] = write_gcode(out / "print.gcode", program if gcode is None else gcode)
     if vtp:
         files["vtp"] = write_toolpaths_vtp(out / "toolpaths.vtp", tp)
     if png:

@@ -6,15 +6,18 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
-from neuralslicer.fea.grid import SolidLike, voxelize
-from neuralslicer.fea.solver import check_spec, fixed_dofs, load_vector
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.model.solid import Solid
 from neuralslicer.model.spec import ModelSpec, load_model
 from neuralslicer.motion.profile import MachineProfile, load_profile
+
+if TYPE_CHECKING:
+    from neuralslicer.fea.grid import SolidLike
+
 
 @dataclass(frozen=True)
 class Names:
@@ -119,6 +122,9 @@ def check_machine(name: str, option: str = Names.machine) -> MachineProfile:
 
 def check_fea_regions(solid: SolidLike, spec: FEASpec) -> None:
     """Supports and loads select something of the voxel model the FEA will build."""
+    from neuralslicer.fea.grid import voxelize   # the FEA's scipy.sparse: only for a model with a load case
+    from neuralslicer.fea.solver import check_spec, fixed_dofs, load_vector
+
     check_spec(spec)
     grid = voxelize(solid, spec.voxels)
     fixed_dofs(grid, spec.supports, float(solid.platform_z))

@@ -5,7 +5,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from neuralslicer.model.solid import Solid
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
@@ -62,6 +61,8 @@ class SurfaceSamples:
 def knn_areas(points: FloatArray, k: int = 10) -> tuple[FloatArray, IndexArray]:
     """Area weights ``(n,)`` (mean squared distance to the k nearest) and neighbour ids ``(n, k)``."""
     k = min(k, len(points) - 1)
+    from scipy.spatial import cKDTree   # scipy.spatial only where samples are drawn
+
     dist, idx = cKDTree(points).query(points, k=k + 1)
     # column 0 is normally the point itself; drop self wherever it appears (duplicates)
     n = len(points)

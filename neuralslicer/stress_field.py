@@ -7,12 +7,14 @@ samples T start (the smallest |max principal stress| among the most stressed vox
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from neuralslicer.types import FloatArray, IndexArray
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: the 8 corners of a grid cell
 _CORNERS = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)], np.int64)
@@ -77,6 +79,8 @@ class StressField:
         out = np.matmul(w[:, None, :], self.stress.reshape(-1, 9)[np.maximum(vox, 0)]).reshape(-1, 3, 3)
         if not found.all():
             if self._tree is None:
+                from scipy.spatial import cKDTree
+
                 self._tree = cKDTree(self.centres)
             out[~found] = self.stress[self._tree.query(points[~found])[1]]
         return out

@@ -4,8 +4,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from neuralslicer.types import IndexArray
 
@@ -36,6 +34,9 @@ class SurfaceTopology:
 
 def surface_topology(faces: IndexArray) -> SurfaceTopology:
     """Topology of a triangle surface ``faces (m, 3)`` (vertices not used by faces are ignored)."""
+    from scipy.sparse import coo_matrix   # scipy.sparse only when a topology is computed (not on a cached rerun)
+    from scipy.sparse.csgraph import connected_components
+
     faces = np.asarray(faces, dtype=np.int64)
     used, f = np.unique(faces, return_inverse=True)
     f = f.reshape(-1, 3)
@@ -77,6 +78,9 @@ def tet_boundary_genus(tets: IndexArray) -> int:
 
 def boundary_loop_lengths(vertices: np.ndarray, faces: IndexArray) -> np.ndarray:
     """Total edge length ``(loops,)`` of each connected set of boundary edges (edges of one face)."""
+    from scipy.sparse import coo_matrix   # scipy.sparse only when a topology is computed (not on a cached rerun)
+    from scipy.sparse.csgraph import connected_components
+
     faces = np.asarray(faces, dtype=np.int64)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     uniq, counts = np.unique(edges, axis=0, return_counts=True)

@@ -5,25 +5,25 @@ import hashlib
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import trimesh
 
 from neuralslicer.cage import Cage
 from neuralslicer.errors import InputError
 from neuralslicer.field_step import history_of
-from neuralslicer.fea import FEAResult
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Solid
 from neuralslicer.motion.collision import CollisionReport, part_collisions
 from neuralslicer.motion.planning import MachineProgram
-from neuralslicer.neural.initial_guess import load_user_field
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
 
 if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
+    import trimesh
+
+    from neuralslicer.fea.solver import FEAResult
     from neuralslicer.outputs import RunResults, StrengthRound
 
 
@@ -49,6 +49,8 @@ def read_solid(ref: ArtifactRef) -> Solid:
 
 def read_surface(ref: ArtifactRef) -> tuple[trimesh.Trimesh, dict[str, Any]]:
     """The boundary surface stored by the surface step, with its genus, volume and bounds."""
+    import trimesh
+
     arrays, attrs = read(ref)
     return trimesh.Trimesh(arrays["vertices"], arrays["faces"], process=False), attrs
 
@@ -148,6 +150,8 @@ def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
 
 def read_fea(ref: ArtifactRef) -> FEAResult:
     """The isotropic FEA result."""
+    from neuralslicer.fea.solver import FEAResult   # scipy.sparse: only where an FEA is read
+
     return FEAResult.from_arrays(*read(ref))
 
 
@@ -161,6 +165,8 @@ def read_fea_spec(model: ArtifactRef) -> FEASpec:
 
 def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
     """Put a user field file (.npz: points (p,3) in the build frame, values (p,)) in the store, keyed by content."""
+    from neuralslicer.neural.initial_guess import load_user_field   # scipy.interpolate: only with a user field
+
     points, values = load_user_field(path)
     key = digest("user_field", hashlib.sha256(points.tobytes() + values.tobytes()).hexdigest())
     st = ArtifactStore(store)

@@ -4,8 +4,6 @@ from __future__ import annotations
 import numpy as np
 from prefect import get_run_logger
 
-from neuralslicer.fea import run_fea, stress_samples
-from neuralslicer.fea.verify import printed_fea_record, verify_field, verify_print
 from neuralslicer.layers import LayerConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.storage import ArtifactRef
@@ -16,6 +14,8 @@ from neuralslicer.tasks.common import pipeline_task
 @pipeline_task("fea", version="1")
 def fea_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, dict]:
     """Isotropic linear elasticity on the voxels of the solid: stresses, principal directions, tau_max."""
+    from neuralslicer.fea import run_fea   # the solver (scipy.sparse): only when the step runs, not on a cached rerun
+
     arrays, attrs = run_fea(read_solid(model), read_fea_spec(model)).to_arrays()
     get_run_logger().info("FEA: %d voxels, max von Mises %.3g MPa", len(arrays["centres"]), float(np.max(arrays["von_mises"])))
     return arrays, attrs
@@ -24,6 +24,8 @@ def fea_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, di
 @pipeline_task("stress_samples", version="1")
 def stress_samples_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactRef) -> tuple[dict, dict]:
     """T: voxel centres in the top fraction of max principal stress magnitude, with volume and tau_max."""
+    from neuralslicer.fea import stress_samples
+
     return stress_samples(read_fea(fea), read_fea_spec(model).top_fraction).to_arrays()
 
 
@@ -34,6 +36,8 @@ def verify_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactR
     """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic).
     With ``motion`` (a print) the filaments lie along the printed toolpaths: the computed layers' own, and toolpaths of
     planar layers made here with the same settings; without, along the ideal direction for both."""
+    from neuralslicer.fea.verify import verify_field, verify_print
+
     solid, computed = read_solid(model), read_field(read_cage(cage), field)
     if motion is None:
         return verify_field(solid, read_fea_spec(model), computed, read_fea(fea))
@@ -47,6 +51,8 @@ def printed_fea_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: Arti
     """The FEA of the printed part (transversely isotropic, filaments along the printed toolpaths, layers of the
     field): stored like the isotropic FEA (a strength round samples its T from it), with the print's strain and how
     far tau_max turned."""
+    from neuralslicer.fea.verify import printed_fea_record
+
     arrays, attrs = printed_fea_record(read_solid(model), read_fea_spec(model), read_field(read_cage(cage), field),
                                        read_motion(motion)[0], read_fea(fea))
     get_run_logger().info("printed part: max strain %.4g, tau_max turned %.1f° (median) by the printed material",

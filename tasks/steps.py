@@ -13,8 +13,6 @@ from neuralslicer.layers import LayerConfig, slice_layers
 from neuralslicer.model.solid import implicit_solid
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.field_step import blend_record, height_record, s3_oneshot_record, s3_record
-from neuralslicer.gcode.writers import gcode_bytes
-from neuralslicer.motion.pipeline import plan_motion_of, plan_toolpaths
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.samples import surface_samples
@@ -150,6 +148,8 @@ def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: Art
                    machine: MachineProfile, t_max: float, fea: ArtifactRef | None = None) -> tuple[dict, dict]:
     """Toolpaths on every layer (shells, infill, order, bead widths and heights); with ``fea`` the infill can
     follow its stress."""
+    from neuralslicer.motion.pipeline import plan_toolpaths   # the planner (scipy): only when the step runs
+
     stress = stress_field(read_fea(fea), read_fea_spec(model).top_fraction) if fea is not None else None
     tp = plan_toolpaths(read_layers(layers).meshes, platform_z=read_solid(model).platform_z, toolpath_cfg=config,
                         profile=machine, t_max=t_max, stress=stress)
@@ -162,6 +162,8 @@ def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: Art
                 machine: MachineProfile) -> tuple[dict, dict]:
     """The exact collision check of the head, travel lifts, tilts and reach, and the machine program (IK, extrusion)
     with the print's metrics."""
+    from neuralslicer.motion.pipeline import plan_motion_of
+
     solid = read_solid(model)
     tp, program, metrics, collisions = plan_motion_of(read_toolpaths(toolpaths), platform_z=solid.platform_z,
                                                       solid_H=solid.H, toolpath_cfg=config, profile=machine)
@@ -172,6 +174,8 @@ def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: Art
 @pipeline_task("program", version="1")
 def program_task(out: ArtifactRef, store: str, motion: ArtifactRef) -> tuple[dict, dict]:
     """The machine program as G-code in the profile's dialect."""
+    from neuralslicer.gcode.writers import gcode_bytes
+
     _, program, _ = read_motion(motion)
     text = gcode_bytes(program)
     get_run_logger().info("program: %s G-code, %.1f MB", program.profile.gcode.dialect, len(text) / 1e6)

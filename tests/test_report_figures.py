@@ -184,3 +184,39 @@ def test_the_report_opens_with_what_a_user_looks_for_first() -> None:
     assert "beads" not in summary and "| `beads.n_capped` | 63 |" in text
     bare = report.summary_rows({"n_layers": 3})
     assert bare == [("layers", "3")]
+
+
+def _write(path: Path, text: str) -> dict[str, str]:
+    """A job: write a file, name it as a figure."""
+    path.write_text(text)
+    return {text: path.name}
+
+
+@pytest.mark.parametrize("helper", ["1", "0"])
+def test_export_jobs_give_every_result_in_order_with_or_without_a_helper(tmp_path: Path, helper: str,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The export's independent jobs (figures, the toolpaths' files) shared with a forked helper process: every job
+    runs once, its files are written, and the figures come back in the jobs' order whoever did them."""
+    from neuralslicer.forked import FORK_ENV
+    from neuralslicer.outputs import ExportJobs
+
+    monkeypatch.setenv(FORK_ENV, helper)
+    jobs = [(float(i % 3), (lambda i=i: _write(tmp_path / f"f{i}.txt", f"job {i}"))) for i in range(7)]
+    figures = ExportJobs(jobs).finish()
+    assert list(figures) == [f"job {i}" for i in range(7)]
+    assert all((tmp_path / f"f{i}.txt").read_text() == f"job {i}" for i in range(7))
+
+
+def test_a_job_that_fails_in_the_helper_fails_the_export_with_its_error(tmp_path: Path) -> None:
+    """A job the helper process could not do is done again by the exporting process, which raises its error."""
+    from neuralslicer.outputs import ExportJobs
+
+    def broken() -> dict[str, str]:
+        raise ValueError("no such layer")
+
+    import time
+
+    jobs = ExportJobs([(9.0, broken)] + [(0.0, lambda: {})] * 3)
+    time.sleep(1.0)   # what the exporting process writes meanwhile: the helper takes every job
+    with pytest.warns(UserWarning, match="no such layer"), pytest.raises(ValueError, match="no such layer"):
+        jobs.finish()

@@ -3,12 +3,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from neuralslicer.errors import InputError
-from neuralslicer.fea.solver import FEAResult
 from neuralslicer.stress_field import StressField
+
+if TYPE_CHECKING:  # the solver's scipy.sparse only where an FEA is run or read
+    from neuralslicer.fea.solver import FEAResult
 
 
 @dataclass

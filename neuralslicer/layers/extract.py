@@ -3,17 +3,22 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from pydantic import BaseModel, Field
 
 from neuralslicer.cage import interior_points
 from neuralslicer.errors import InputError
+from neuralslicer.forked import shared_map
 from neuralslicer.layers.marching import marching_batch, tet_edges
 from neuralslicer.layers.trim import trim
 from neuralslicer.model.solid import Solid
 from neuralslicer.scalar_field import ScalarField
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
+
 
 class LayerConfig(BaseModel):
     """How layers are chosen and trimmed."""
@@ -62,6 +67,8 @@ class Layers:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Layers:
         """Rebuild from store arrays."""
+        import trimesh
+
         nv, nf = arrays["vertex_offsets"], arrays["face_offsets"]
         meshes = []
         for i, iso in enumerate(arrays["isovalues"]):
@@ -139,13 +146,15 @@ def extract_layers(
 ) -> Layers:
     """Isosurfaces of G at the isovalues, trimmed by H <= 0, small pieces dropped, in print order.
 
-    Layers are trimmed in batches (one H evaluation per batch and crossing iteration, not per layer).
+    Layers are trimmed in batches (one H evaluation per batch and crossing iteration, not per layer); the batches,
+    independent of each other, are shared with a forked helper process (:func:`neuralslicer.forked.shared_map`).
     """
     edges, tet_edge = tet_edges(cage_tets)
     meshes, kept_iso = [], []
     dropped_pieces, dropped_area = 0, 0.0
-    for start in range(0, len(isovalues), batch):
-        isos = np.asarray(isovalues[start : start + batch])
+
+    def trimmed(isos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One batch: its isosurfaces trimmed, (points, faces, source tet and layer in the batch per face)."""
         parts = marching_batch(cage_vertices, cage_tets, G, isos, lpd, edges, tet_edge)
         offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
         pts = np.concatenate([p for p, _, _ in parts])
@@ -155,6 +164,12 @@ def extract_layers(
         if len(faces):
             pts, faces, src = trim(pts, faces, H, config.trim_iterations, config.trim_rounds, config.trim_tolerance)
             src_tet, face_layer = src_tet[src], face_layer[src]
+        return pts, faces, src_tet, face_layer
+
+    starts = range(0, len(isovalues), batch)
+    batches = [np.asarray(isovalues[start : start + batch]) for start in starts]
+    done = shared_map([lambda isos=isos: trimmed(isos) for isos in batches], [float(len(b)) for b in batches])
+    for start, isos, (pts, faces, src_tet, face_layer) in zip(starts, batches, done):
         for i, iso in enumerate(isos):
             mesh, n_drop, a_drop = _layer_mesh(pts, faces[face_layer == i], lpd[src_tet[face_layer == i]], config.min_area)
             dropped_pieces += n_drop
@@ -173,6 +188,8 @@ def _layer_mesh(
     pts: np.ndarray, faces: np.ndarray, face_lpd: np.ndarray, min_area: float
 ) -> tuple[trimesh.Trimesh | None, int, float]:
     """One layer's mesh with per-vertex LPD (area-weighted), small pieces dropped; None when nothing is left."""
+    import trimesh
+
     if len(faces) == 0:
         return None, 0, 0.0
     used, inv = np.unique(faces, return_inverse=True)
@@ -187,6 +204,8 @@ def _layer_mesh(
 
 def _drop_small_pieces(mesh: trimesh.Trimesh, min_area: float) -> tuple[trimesh.Trimesh, int, float]:
     """Remove connected pieces whose area is below min_area."""
+    import trimesh
+
     if min_area <= 0 or len(mesh.faces) == 0:
         return mesh, 0, 0.0
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))

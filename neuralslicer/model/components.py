@@ -7,7 +7,8 @@ can be written to plain arrays + JSON attributes (:meth:`Component.to_arrays`) a
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar
+from functools import cached_property
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -95,15 +96,21 @@ class _TriangleDistance:
     """Unsigned distance to a triangle set with an AABB tree (libigl), closest points and faces."""
 
     def __init__(self, vertices: FloatArray, faces: IndexArray) -> None:
-        """Build the AABB tree once; queries are O(log m) each."""
-        import igl
-
+        """The AABB tree is built once, at the first query (a solid only checked, as a cached rerun's, needs none);
+        queries are O(log m) each."""
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
-        self.tree = igl.AABB()
-        self.tree.init(self.vertices, self.faces)
         self.normals = face_normals(self.vertices, self.faces)
         self.scale = float(np.linalg.norm(np.ptp(self.vertices, axis=0)))
+
+    @cached_property
+    def tree(self) -> Any:
+        """libigl's AABB tree of the triangles."""
+        import igl
+
+        tree = igl.AABB()
+        tree.init(self.vertices, self.faces)
+        return tree
 
     def query(self, x: FloatArray) -> tuple[FloatArray, FloatArray, IndexArray]:
         """Distance ``(n,)``, unit direction from the closest point to x ``(n, 3)``, closest face ``(n,)``."""

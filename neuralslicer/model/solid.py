@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import json
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from neuralslicer.errors import InputError
 from neuralslicer.frames import up_rotation
@@ -16,10 +16,13 @@ from neuralslicer.model.components import (
 )
 from neuralslicer.model.convolution import radius_from_threshold
 from neuralslicer.model.grid import level_set_mesh
-from neuralslicer.model.points import check_cloud, reconstruct
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.topology import genus
 from neuralslicer.types import FloatArray
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
+
 
 SCHEMA_VERSION = 1
 #: Most grid cells used by :meth:`Solid.surface` when the voxel size is not given.
@@ -141,6 +144,8 @@ class Solid:
         cubes (scikit-image) of H on a grid of ``voxel`` (default :meth:`default_voxel`), with the
         vertices moved onto ``H = 0`` by two Newton steps along ∇H.
         """
+        import trimesh
+
         single = self._single_mesh()
         if single is not None and voxel is None:
             return trimesh.Trimesh(single.vertices.copy(), single.faces.copy(), process=False)
@@ -180,6 +185,8 @@ class Solid:
 
     def _marching_cubes(self, voxel: float) -> trimesh.Trimesh:
         """Marching cubes of H at level 0 on a narrow-band grid that covers the solid with a margin."""
+        import trimesh
+
         boxes = np.stack([c.box for c in self.components])
         lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
         if self.smooth_union is not None:
@@ -308,6 +315,8 @@ def _tet_boundary(path, vertices: FloatArray, tets) -> tuple[FloatArray, np.ndar
 
 def _points_component(cs, frame, s: float) -> MeshComponent:
     """Read a point cloud, reconstruct its closed surface (:mod:`neuralslicer.model.points`), as a mesh."""
+    from neuralslicer.model.points import check_cloud, reconstruct   # scipy.ndimage and friends: point clouds only
+
     path = cs.file
     p, n = io.read_points(path)
     if cs.normals == "given" and n is None:

@@ -4,10 +4,9 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
-import trimesh
 
 from neuralslicer.errors import InputError, PlanError
 from neuralslicer.layers import LayerConfig
@@ -22,6 +21,9 @@ from neuralslicer.toolpath.beads import bead_summary, hold_beads
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.types import Toolpaths
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
 
 
 def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,

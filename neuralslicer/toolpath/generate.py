@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from neuralslicer.errors import InputError
+from neuralslicer.forked import shared_map
 from neuralslicer.stress_field import StressLike
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.geometry import (ElementSet, Patch, TriangleSet, boundary_distance, boundary_vertices,
@@ -18,6 +18,10 @@ from neuralslicer.toolpath.stress_infill import (StressPotential, delaunay_flips
                                                  stress_region)
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import FloatArray, IndexArray
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
+
 
 #: path kinds: contour-parallel shells, regular infill (zig-zag or contour), stress-following infill
 SHELL, INFILL, STRESS = 0, 1, 2
@@ -489,24 +493,34 @@ def _layer_patches(layer: trimesh.Trimesh, li: int, cfg: ToolpathConfig) -> tupl
     return kept, len(patches) - len(kept)
 
 
-def _layer_paths(patches: list[Patch], li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int,
-                 stress: list[tuple[_StressSetup | None, FloatArray | None]] | None = None
-                 ) -> tuple[list[_Path], int]:
-    """One layer's paths in print order from ``start`` (patches refined, filled, zigzags joined) and the closed
-    loops among them; ``stress``: per patch its stress scalar and region (stress-following infill)."""
+def _layer_patch_paths(patches: list[Patch], li: int, cfg: ToolpathConfig,
+                       stress: list[tuple[_StressSetup | None, FloatArray | None]] | None = None) -> list[_Path]:
+    """One layer's paths, unordered: every patch refined and filled (shells, infill); ``stress``: per patch its
+    stress scalar and region (stress-following infill). Independent of the other layers."""
     all_paths: list[_Path] = []
-    filled: list[TriangleSet] = []
     for k, patch in enumerate(patches):
-        filled.append(TriangleSet(patch.vertices, patch.faces))
+        surface = TriangleSet(patch.vertices, patch.faces)
         lines, region = stress[k] if stress is not None else (None, None)
         if lines is not None and (lines.potential.region < 0).any():
             # part of the patch is left to the zig-zag: its region, carried through the refinement (linear on the
             # layer's triangles), tells _patch_paths where
             patch = replace(patch, values=region)
         fine = refine_patch(patch, cfg.max_edge or cfg.line_width, band=distance_band(cfg))
-        all_paths += _patch_paths(fine, len(filled) - 1, li, cfg, filled[-1], lines)
+        all_paths += _patch_paths(fine, k, li, cfg, surface, lines)
+    return all_paths
+
+
+def _layer_paths(patches: list[Patch], li: int, cfg: ToolpathConfig, start: FloatArray | None, n_loops: int,
+                 stress: list[tuple[_StressSetup | None, FloatArray | None]] | None = None,
+                 all_paths: list[_Path] | None = None) -> tuple[list[_Path], int]:
+    """One layer's paths in print order from ``start`` (patches refined, filled, zigzags joined) and the closed
+    loops among them; ``stress``: per patch its stress scalar and region (stress-following infill); ``all_paths``:
+    the layer's :func:`_layer_patch_paths`, when computed already."""
+    if all_paths is None:
+        all_paths = _layer_patch_paths(patches, li, cfg, stress)
     if not all_paths:
         return [], 0
+    filled = [TriangleSet(patch.vertices, patch.faces) for patch in patches]
     start = start if start is not None else all_paths[0].xyz[0]
     gap_max = cfg.join_factor * cfg.line_width / cfg.infill_density
     ordered = _join_zigzag(_order_paths(all_paths, start, cfg.alternate_loops, n_loops, gap_max), filled, cfg)
@@ -563,11 +577,16 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
         cuts = np.cumsum([0] + [len(p) for p, _ in layer_patches])
         per_patch = [list(zip(setups[a:b], regions[a:b])) for a, b in zip(cuts[:-1], cuts[1:])]
     infill_mm = {INFILL: 0.0, STRESS: 0.0}
+    # every layer's patches filled (independent of each other: shared with a forked helper process), then ordered,
+    # layer after layer, from where the previous one ended
+    filled = shared_map([lambda li=li: _layer_patch_paths(layer_patches[li][0], li, cfg,
+                                                          None if per_patch is None else per_patch[li])
+                         for li in range(len(layers))], [float(len(layer.faces)) for layer in layers])
     for li, layer in enumerate(layers):
         if len(layer.faces) == 0:
             continue
         ordered, loops = _layer_paths(layer_patches[li][0], li, cfg, cur, n_loops,
-                                      None if per_patch is None else per_patch[li])
+                                      None if per_patch is None else per_patch[li], filled[li])
         n_loops += loops
         for p in ordered:
             if p.kind in infill_mm:

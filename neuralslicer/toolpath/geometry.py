@@ -2,13 +2,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from neuralslicer.types import FloatArray, IndexArray
+
+if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
+    import trimesh
 
 
 @dataclass

@@ -7,7 +7,7 @@ import numpy as np
 
 from neuralslicer.errors import InputError
 from neuralslicer.toolpath.types import Toolpaths
-from neuralslicer.fileio import atomic_path
+from neuralslicer.fileio import atomic_path, save_vtk_xml
 
 CSV_COLUMNS = ("layer", "path", "x", "y", "z", "nx", "ny", "nz", "thickness", "width", "extrude")
 
@@ -69,8 +69,7 @@ def write_toolpaths_vtp(path: str | Path, tp: Toolpaths) -> Path:
     poly.point_data["width"] = tp.width
     poly.point_data["extrude"] = tp.extrude.astype(np.uint8)
     poly.point_data["axis"] = tp.axis
-    with atomic_path(path) as tmp:
-        poly.save(str(tmp))
+    save_vtk_xml(poly, path)
     return Path(path)
 
 
