@@ -399,29 +399,36 @@ def test_bulk_number_formatting_matches_printf():
         fixed_point(np.array([1.0, np.nan]), 3)
 
 
+def header_totals(path, program, profile, open_c: str, close_c: str, layer_mark: str, normal_mode: str) -> dict:
+    """Check a G-code header's print-host keys against what the file holds (E read back from the moves, the layer
+    marks, the summary's estimated time); ``open_c``/``close_c`` wrap a comment in the dialect. Returns the totals."""
+    text = path.read_text()
+    head = text[:text.index("G21")]
+    key = lambda pattern: re.search(open_c + pattern + close_c, head).group(1)  # noqa: E731
+    moves = parse_gcode(path, axes="".join(program.axis_letters))
+    filament = np.diff(moves.axes[program.axis_letters[5]])[program.kind[1:] == PRINT].sum()
+    assert float(key(r" ?filament used \[mm\] = ([\d.]+)")) == pytest.approx(filament, abs=0.01)
+    assert float(key(r"Filament used: ([\d.]+)m")) == pytest.approx(filament / 1000, abs=1e-5)
+    grams = filament * np.pi * 0.25 * profile.extrusion.filament_diameter ** 2 * 1.24e-3
+    assert float(key(r" ?filament used \[g\] = ([\d.]+)")) == pytest.approx(grams, abs=0.01)
+    n_layers = len(re.findall(layer_mark, text, flags=re.M))
+    assert int(key(r"LAYER_COUNT:(\d+)")) == n_layers == int(key(r" ?total layers count = (\d+)")) > 1
+    t = int(key(r"TIME:(\d+)"))
+    assert t == round(float(re.search(r"est\. time ([\d.]+) s", head).group(1)))
+    h, m, s = map(int, re.search(open_c + rf" ?estimated printing time{normal_mode} = (\d+)h (\d+)m (\d+)s" + close_c,
+                                 head).groups())
+    assert 3600 * h + 60 * m + s == t
+    return {"filament": filament, "n_layers": n_layers, "head": head}
+
+
 def test_the_header_carries_what_print_hosts_show(tmp_path, curved):
     """RepRap dialect: ;TIME, filament length and mass, layer count in the Cura and PrusaSlicer spellings, equal to
-    what the file itself holds (E read back from the moves, the ;LAYER marks, the summary's estimated time)."""
+    what the file itself holds."""
     tp, _, _ = curved
     profile = load_profile("reprap_5axis")
     program = plan_motion(tp, profile, platform_z=0.0)
-    path = write_gcode(tmp_path / "print.gcode", program)
-    text = path.read_text()
-    head = text[:text.index("G21")]
-    key = lambda pattern: re.search(pattern, head).group(1)  # noqa: E731
-    moves = parse_gcode(path, axes="".join(program.axis_letters))
-    de = np.diff(moves.axes[program.axis_letters[5]])
-    filament = de[program.kind[1:] == PRINT].sum()
-    assert float(key(r"; filament used \[mm\] = ([\d.]+)")) == pytest.approx(filament, abs=0.01)
-    assert float(key(r";Filament used: ([\d.]+)m")) == pytest.approx(filament / 1000, abs=1e-5)
-    grams = filament * np.pi * 0.25 * profile.extrusion.filament_diameter ** 2 * 1.24e-3
-    assert float(key(r"; filament used \[g\] = ([\d.]+)")) == pytest.approx(grams, abs=0.01)
-    n_layers = len(re.findall(r"^;LAYER:", text, flags=re.M))
-    assert int(key(r";LAYER_COUNT:(\d+)")) == n_layers == int(key(r"; total layers count = (\d+)")) > 1
-    t = int(key(r";TIME:(\d+)"))
-    assert t == round(float(key(r"est\. time ([\d.]+) s")))
-    h, m, s = map(int, re.search(r"estimated printing time \(normal mode\) = (\d+)h (\d+)m (\d+)s", head).groups())
-    assert 3600 * h + 60 * m + s == t
+    header_totals(write_gcode(tmp_path / "print.gcode", program), program, profile, ";", "", r"^;LAYER:",
+                  r" \(normal mode\)")
 
 
 def test_the_linuxcnc_header_carries_the_same_totals(tmp_path, curved):
@@ -431,25 +438,12 @@ def test_the_linuxcnc_header_carries_the_same_totals(tmp_path, curved):
     profile = load_profile("table_bc_linuxcnc")
     program = plan_motion(tp, profile, platform_z=0.0)
     path = write_gcode(tmp_path / "print.ngc", program)
-    text = path.read_text()
-    head = text[:text.index("G21")]
-    keys = [ln for ln in head.splitlines() if re.match(r"\((TIME|Filament used|LAYER_COUNT|estimated printing|"
-                                                        r"filament used|total layers)", ln)]
+    found = header_totals(path, program, profile, r"\(", r"\)", r"^\(LAYER \d+ / ", "")
+    keys = [ln for ln in found["head"].splitlines() if re.match(r"\((TIME|Filament used|LAYER_COUNT|estimated printing|"
+                                                                 r"filament used|total layers)", ln)]
     assert len(keys) == 7
     assert all(ln.endswith(")") and ln.count("(") == 1 == ln.count(")") and ";" not in ln for ln in keys)
-    key = lambda pattern: re.search(pattern, head).group(1)  # noqa: E731
-    moves = parse_gcode(path, axes="".join(program.axis_letters))
-    filament = np.diff(moves.axes[program.axis_letters[5]])[program.kind[1:] == PRINT].sum()
-    assert float(key(r"\(filament used \[mm\] = ([\d.]+)\)")) == pytest.approx(filament, abs=0.01)
-    assert float(key(r"\(Filament used: ([\d.]+)m\)")) == pytest.approx(filament / 1000, abs=1e-5)
-    grams = filament * np.pi * 0.25 * profile.extrusion.filament_diameter ** 2 * 1.24e-3
-    assert float(key(r"\(filament used \[g\] = ([\d.]+)\)")) == pytest.approx(grams, abs=0.01)
-    n_layers = len(re.findall(r"^\(LAYER \d+ / ", text, flags=re.M))
-    assert int(key(r"\(LAYER_COUNT:(\d+)\)")) == n_layers == int(key(r"\(total layers count = (\d+)\)")) > 1
-    t = int(key(r"\(TIME:(\d+)\)"))
-    assert t == round(float(key(r"est\. time ([\d.]+) s")))
-    h, m, s = map(int, re.search(r"\(estimated printing time = (\d+)h (\d+)m (\d+)s\)", head).groups())
-    assert 3600 * h + 60 * m + s == t
+    filament, n_layers = found["filament"], found["n_layers"]
     # the same totals as the RepRap header of the same program
     reprap = write_gcode(tmp_path / "print.gcode", plan_motion(tp, load_profile("reprap_5axis"), platform_z=0.0))
     rhead = reprap.read_text().split("G21", 1)[0]
