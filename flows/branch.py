@@ -16,7 +16,7 @@ from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.model.spec import ModelSpec, load_model
 from pydantic import BaseModel, ConfigDict, Field
 
-from neuralslicer.storage import ArtifactStore, write_json_atomic
+from neuralslicer.storage import ArtifactRef, ArtifactStore, write_json_atomic
 
 
 class Branch(BaseModel):
@@ -80,13 +80,7 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
     store = ArtifactStore(branch.store).root
     run = slice_pipeline(spec, branch.out_dir, branch.config, store, branch.user_field, {"branch": branch.name})
     st = ArtifactStore(store)
-    field_ref, cage = run.refs["field"], run.refs["cage"]
-    field_attrs, cage_attrs = st.attrs(field_ref.path), st.attrs(cage.path)
-    steps = int(field_attrs.get("steps", 0) or 0)
-    # a field computed in this run that started from a checkpoint: the checkpoint it resumed from
-    states = dict(run.states)
-    field_state = states.get("field", states.get("field_s3", states.get("field_s3_oneshot")))
-    resumed_step = field_attrs.get("resumed_from_step") if field_state != "Cached" else None
+    field_attrs = st.attrs(run.refs["field"].path)
     result = {
         "name": branch.name,
         "parameters": branch.parameters,
@@ -96,13 +90,8 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
         "all_cached": all(s == "Cached" for _, s in run.states),
         "final_loss": field_attrs.get("final") or {},
         "satisfaction": field_attrs.get("satisfaction") or {},
-        "field": {"path": field_ref.path, "steps": steps, "converged": field_attrs.get("converged"),
-                  "optimise_wall_s": field_attrs.get("wall_time_s"),
-                  "s_per_step": (field_attrs["wall_time_s"] / steps) if steps and field_attrs.get("wall_time_s") else None,
-                  "resumed_from_checkpoint": None if resumed_step is None else f"step_{resumed_step:08d}",
-                  "resumed_from_step": field_attrs.get("resumed_from_step")},
-        "cage": {"path": cage.path, "n_elements": cage_attrs.get("n_elements"), "genus": cage_attrs.get("genus"),
-                 "n_vertices": cage_attrs.get("n_vertices"), "wall_s": cage_attrs.get("wall_s")},
+        "field": _field_record(run.refs["field"], field_attrs, dict(run.states)),
+        "cage": _cage_record(run.refs["cage"], st.attrs(run.refs["cage"].path)),
         "metrics": _metrics(branch.out_dir),
         "provenance_digest": run.provenance_digest,
         "worker": worker_identity(),
@@ -112,6 +101,25 @@ def run_pipeline(branch: Branch) -> dict[str, Any]:
     }
     write_json_atomic(Path(branch.out_dir) / "branch.json", result)
     return result
+
+
+def _field_record(ref: ArtifactRef, attrs: dict[str, Any], states: dict[str, str]) -> dict[str, Any]:
+    """The branch record's field entry from the field group's attributes: its group, steps, convergence, optimisation
+    time, and the checkpoint a field computed in this run resumed from."""
+    steps = int(attrs.get("steps", 0) or 0)
+    field_state = states.get("field", states.get("field_s3", states.get("field_s3_oneshot")))
+    resumed_step = attrs.get("resumed_from_step") if field_state != "Cached" else None
+    return {"path": ref.path, "steps": steps, "converged": attrs.get("converged"),
+            "optimise_wall_s": attrs.get("wall_time_s"),
+            "s_per_step": (attrs["wall_time_s"] / steps) if steps and attrs.get("wall_time_s") else None,
+            "resumed_from_checkpoint": None if resumed_step is None else f"step_{resumed_step:08d}",
+            "resumed_from_step": attrs.get("resumed_from_step")}
+
+
+def _cage_record(ref: ArtifactRef, attrs: dict[str, Any]) -> dict[str, Any]:
+    """The branch record's cage entry from the cage group's attributes: its group, size, genus and build time."""
+    return {"path": ref.path, "n_elements": attrs.get("n_elements"), "genus": attrs.get("genus"),
+            "n_vertices": attrs.get("n_vertices"), "wall_s": attrs.get("wall_s")}
 
 
 def _metrics(out_dir: str) -> dict[str, Any]:

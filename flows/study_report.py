@@ -148,10 +148,9 @@ def plot_cage_study(path: Path, study: dict[str, Any]) -> None:
     plt.close(fig)
 
 
-def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Branch]) -> None:
-    """study.json, study.md and figures in out_dir; the table and report as Prefect artifacts."""
-    from prefect.artifacts import create_markdown_artifact, create_table_artifact
-
+def study_figures(study: dict[str, Any], out_dir: Path, branches: list[Branch]) -> dict[str, str]:
+    """Draw the study's figures into out_dir/figures (learning curves; the cage plot of a cage study): caption ->
+    path relative to out_dir; the curves' names go into the study record."""
     figures: dict[str, str] = {}
     curves = learning_curves(branches, study)
     if curves:
@@ -161,12 +160,13 @@ def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Bra
     if study["kind"] == "cages" and any(b.get("status") == "completed" for b in study["branches"]):
         plot_cage_study(out_dir / "figures" / "cages.png", study)
         figures["Cage resolution"] = "figures/cages.png"
-    study["figures"] = figures
-    agreement = fields_agreement(branches, study) if study["kind"] == "initial-guess" else []
-    if agreement:
-        study["agreement"] = agreement
-    rows = table_rows(study)
-    write_json_atomic(out_dir / "study.json", study)
+    return figures
+
+
+def study_markdown(study: dict[str, Any], rows: list[dict[str, Any]], agreement: list[dict[str, Any]],
+                   figures: dict[str, str]) -> str:
+    """study.md: the title, how alike the fields are (initial-guess study), the branch table with its legend, links to
+    each branch's report, the figures."""
     lines = [f"# {study['title']}", "", f"{len(study['branches'])} branches, wall time {study['wall_s']:.1f} s.", ""]
     if agreement:
         lines += ["## How alike the fields are", "",
@@ -190,7 +190,20 @@ def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Bra
             lines.append(f"- `{b['name']}`: [{b['name']}/report.md]({b['name']}/report.md)")
     for caption, rel in figures.items():
         lines += ["", f"## {caption}", "", f"![{caption}]({rel})"]
-    text = "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n"
+
+
+def write_study_outputs(study: dict[str, Any], out_dir: Path, branches: list[Branch]) -> None:
+    """study.json, study.md and figures in out_dir; the table and report as Prefect artifacts."""
+    from prefect.artifacts import create_markdown_artifact, create_table_artifact
+
+    study["figures"] = figures = study_figures(study, out_dir, branches)
+    agreement = fields_agreement(branches, study) if study["kind"] == "initial-guess" else []
+    if agreement:
+        study["agreement"] = agreement
+    rows = table_rows(study)
+    write_json_atomic(out_dir / "study.json", study)
+    text = study_markdown(study, rows, agreement, figures)
     write_text_atomic(out_dir / "study.md", text)
     key = artifact_key(f"{study['kind']}-{out_dir.name}")
     create_table_artifact(key=f"{key}-table", table=[{k: _fmt(v) for k, v in r.items()} for r in rows],

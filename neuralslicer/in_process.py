@@ -138,8 +138,7 @@ class InProcessSteps:
         if request.refine_on:
             found = [part_collisions(m.toolpaths.xyz, m.collisions.indices, m.collisions.kind, m.collisions.locations)
                      for m in (earlier[i].motion for i in request.refine_on)]
-            options["refine"] = Refinement(np.concatenate([h for h, _ in found]),
-                                           np.concatenate([w for _, w in found]), weights)
+            options["refine"] = Refinement.of_prints(found, weights)
         elif weights is not None:
             options["warm_start"] = weights
         return options

@@ -93,8 +93,7 @@ def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactR
     weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
     refine = None
     if refine_prints:
-        found = [read_part_collisions(p) for p in refine_prints]
-        refine = Refinement(np.concatenate([h for h, _ in found]), np.concatenate([w for _, w in found]), weights)
+        refine = Refinement.of_prints([read_part_collisions(p) for p in refine_prints], weights)
     return run_optimisation(out, c, read_samples(samples), read_stress(stress) if stress is not None else None,
                             objectives, config, read_solid(model), *read_user_field(user_field), refine=refine,
                             warm_start=weights if refine is None else None)

@@ -113,6 +113,12 @@ class Refinement:
     witnesses: np.ndarray | None = None
     weights: dict[str, np.ndarray] | None = None
 
+    @classmethod
+    def of_prints(cls, found: list[tuple[np.ndarray, np.ndarray]], weights: dict[str, np.ndarray] | None
+                  ) -> "Refinement":
+        """The refinement around the (hits, witnesses) of several prints (``part_collisions`` of each)."""
+        return cls(np.concatenate([h for h, _ in found]), np.concatenate([w for _, w in found]), weights)
+
 
 @dataclass
 class LoopState:
