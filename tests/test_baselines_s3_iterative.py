@@ -11,7 +11,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from neuralslicer.baselines.s3_config import S3_PRESETS, S3Config, S3DeformConfig
-from neuralslicer.baselines.s3_deform import (S3Mesh, hybrid_rotations, s3_deform, s3_field, strength_rotations,
+from neuralslicer.baselines.s3_deform import (S3Mesh, hybrid_rotations, inverse_deformation_field, s3_deform,
+                                              s3_field, strength_rotations,
                                               support_less_rotations, svd_rotations, transfer_field)
 from neuralslicer.data import DATA_DIR
 from neuralslicer.metrics import overhang_area_fraction
@@ -206,6 +207,22 @@ def test_transfer_is_exact_for_an_affine_field():
     G = V @ [0.3, -0.2, 1.0] + 2.0
     pts = np.random.default_rng(1).uniform(-2, 12, size=(200, 3))  # inside and outside the ball
     assert np.allclose(transfer_field(V, T, G, pts), pts @ [0.3, -0.2, 1.0] + 2.0)
+
+
+def test_inverse_deformation_field_keeps_an_affine_height_and_integrates_unit_gradients():
+    """S3's post-processing (MainWindow.cpp:1540-1576): an affine height has one gradient direction, which the
+    smoothing keeps, so the field is the distance along it; a bent height comes back with unit gradient."""
+    V, T = sphere()
+    mesh = S3Mesh.build(V, T, 1.0)
+    u = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
+    F = inverse_deformation_field(mesh.vertices, mesh.tets, 2.5 * (V @ u) + 7.0, mesh.pairs)
+    assert np.allclose(F, V @ u - (V @ u).min(), atol=1e-8)
+    F = inverse_deformation_field(mesh.vertices, mesh.tets, V[:, 2] + 0.02 * (V[:, 0] - 30) ** 2, mesh.pairs)
+    g = np.linalg.norm(np.einsum("ei,eij->ej", F[mesh.tets], barycentric_gradients(mesh.vertices, mesh.tets)), axis=1)
+    assert F.min() == 0.0 and 0.9 < np.median(g) < 1.1
+    # through s3_deform: with nothing to rotate the field is the height either way
+    res = s3_deform(V, T, S3DeformConfig(w_critical_sl=0.0, layer_field="inverse_deformation"))
+    assert np.allclose(res.G, V[:, 2] - V[:, 2].min(), atol=1e-6)
 
 
 def test_parameters_follow_s3s_table():

@@ -107,6 +107,11 @@ class S3DeformConfig(BaseModel):
         "None: S3's row (30)")
     bottom_height_mm: float = Field(1.0, ge=0, description="tets with a vertex this close to the floor are never "
                                     "overhanging and keep their rotation, m_bottom_height (DeformTet.h:185)")
+    layer_field: Literal["height", "inverse_deformation"] = Field(
+        "height", description="the field the layers are level sets of: 'height', the deformed height "
+        "(_cal_virtual_Vfield, DeformTet.cpp:2584); 'inverse_deformation', what S3's GUI slices after its inverse "
+        "deformation step (MainWindow.cpp:1540-1576): that height's unit gradient, smoothed 10 times over face "
+        "neighbours and integrated back by least squares")
 
     def resolve(self, name: str, objectives: Iterable[str]) -> "S3DeformConfig":
         """The parameters S3 would run with: the row of its table for the model name (preset 'auto') or the named

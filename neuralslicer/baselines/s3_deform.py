@@ -17,7 +17,8 @@ Every outer iteration (``runASAP_SupportLess_test3``, ``runASAP_StrengthReinforc
    ``w_e`` the critical weight of SL / SR tets and 1 elsewhere.
 
 The field is the height of the deformed mesh at its vertices (``_cal_virtual_Vfield``): the curved layers are its
-level sets in the model space.  Numpy/scipy only: sparse systems, each factorised once per outer iteration.
+level sets in the model space. With ``layer_field: inverse_deformation`` it is what S3's GUI slices instead
+(``MainWindow::inverseDeformation``): the height's unit gradient, smoothed and integrated back.  Numpy/scipy only: sparse systems, each factorised once per outer iteration.
 """
 from __future__ import annotations
 
@@ -167,7 +168,8 @@ class S3Mesh:
 class S3DeformResult:
     """S3's deformation of one tet mesh.
 
-    G : (n,) the deformed height at the mesh vertices; deformed : (n,3); rotations : (m,3,3) the smoothed target
+    G : (n,) the layer field at the mesh vertices: the deformed height, or S3's post-processed field of it
+    (``layer_field: inverse_deformation``, :func:`inverse_deformation_field`); deformed : (n,3); rotations : (m,3,3) the smoothed target
     rotations of the last inner iteration; scales : (m,3) per-axis element scales; history : 'fabrication_sl',
     'fabrication_sr' (S3's energies of the deformed mesh at the start of each outer iteration and after the last),
     'asap' (the ASAP residual of each solve), 'inner_sl', 'inner_sr' (the inner-loop energies), 'critical' (the
@@ -363,10 +365,52 @@ def s3_deform(
     hist["fabrication_sl"].append(e_sl)
     hist["fabrication_sr"].append(e_sr)
     G = X[:, 2] - X[:, 2].min()
+    if cfg.layer_field == "inverse_deformation":
+        G = inverse_deformation_field(mesh.vertices, mesh.tets, G, mesh.pairs)
     return S3DeformResult(G=G, deformed=X, rotations=R, scales=S, history=hist,
                           satisfaction=_satisfaction(mesh, X, G), wall_time_s=time.perf_counter() - t0,
                           attrs={"n_vertices": len(X), "n_tets": m, "bottom_tets": int(mesh.bottom.sum()),
                                  "sr_tets": int(sr.sum())})
+
+
+def inverse_deformation_field(vertices: np.ndarray, tets: np.ndarray, height: np.ndarray, pairs: np.ndarray,
+                              smooth_loops: int = 10) -> np.ndarray:
+    """S3's layer field from the deformed height (``MainWindow::inverseDeformation``, MainWindow.cpp:1540-1576):
+    the height's unit gradient per tet on the rest mesh (``_scalarField_2_vectorField(true)``, :2531), smoothed
+    ``smooth_loops`` times in place, in tet order, each tet's vector replaced by the normalised sum of itself and
+    its face neighbours (``_vectorField_smooth(10, true)``, :2603), and integrated back by unweighted least squares,
+    one row per tet and axis (``_vectorField_2_scalarField(false)``, :2632). S3 then normalises the field to [0, 1];
+    here it keeps its millimetres (unit gradient), 0 at its lowest vertex.
+
+    vertices (n,3), tets (m,4) oriented, height (n,), pairs (k,2) face-adjacent tets; returns (n,).
+    """
+    V, T = np.asarray(vertices, dtype=np.float64), np.asarray(tets, dtype=np.int64)
+    n, m = len(V), len(T)
+    grads = barycentric_gradients(V, T)  # (m,4,3): S3's VolumeMatrix
+    v = _unit(np.einsum("ei,eij->ej", np.asarray(height, dtype=np.float64)[T], grads))
+    if smooth_loops > 0:
+        order = np.argsort(np.concatenate([pairs[:, 0], pairs[:, 1]]), kind="stable")
+        other = np.concatenate([pairs[:, 1], pairs[:, 0]])[order].tolist()
+        start = np.concatenate([[0], np.cumsum(np.bincount(pairs.ravel(), minlength=m))]).tolist()
+        x, y, z = v[:, 0].tolist(), v[:, 1].tolist(), v[:, 2].tolist()
+        for _ in range(smooth_loops):  # Gauss-Seidel order, as S3 walks its tet list
+            for e in range(m):
+                sx, sy, sz = x[e], y[e], z[e]
+                for j in other[start[e]:start[e + 1]]:
+                    sx += x[j]
+                    sy += y[j]
+                    sz += z[j]
+                r = math.sqrt(sx * sx + sy * sy + sz * sz)
+                if r > 0.0:
+                    x[e], y[e], z[e] = sx / r, sy / r, sz / r
+        v = np.stack([x, y, z], axis=1)
+    rows = (3 * np.arange(m)[:, None, None] + np.arange(3)[None, None, :]).repeat(4, axis=1)  # (m,4,3)
+    cols = np.broadcast_to(T[:, :, None], (m, 4, 3))
+    A = sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * m, n))
+    AtA = (A.T @ A).tolil()
+    AtA[0, 0] += 1.0  # the constant is free (S3's Pardiso LU picks one); pin vertex 0 softly
+    phi = spla.factorized(AtA.tocsc())(A.T @ v.ravel())
+    return phi - phi.min()
 
 
 def _inner_sl(R: np.ndarray, n0: np.ndarray, over: np.ndarray, alpha: float) -> float:
@@ -484,7 +528,7 @@ def s3_field(
 ) -> S3FieldResult:
     """S3-Slicer's field G on the cage: its deformation of the model's own tet mesh (``model_tets``: vertices (n,3),
     tets (m,4), build frame) when ``config.on == 'model'`` and there is one, else of the cage; G is the deformed
-    height, carried to the cage vertices (barycentric, the nearest tet's affine extension outside the model)."""
+    height (or S3's post-processed field of it, ``config.layer_field``), carried to the cage vertices (barycentric, the nearest tet's affine extension outside the model)."""
     t0 = time.perf_counter()
     objectives = [o for o in objectives if o in ("sf", "sr")]
     base = config or S3DeformConfig()
@@ -508,4 +552,4 @@ def s3_field(
 
 
 __all__ = ["S3Mesh", "S3DeformResult", "S3FieldResult", "s3_deform", "s3_field", "stress_tets", "transfer_field",
-           "rotations_between", "svd_rotations", "support_less_rotations", "strength_rotations", "hybrid_rotations"]
+           "inverse_deformation_field", "rotations_between", "svd_rotations", "support_less_rotations", "strength_rotations", "hybrid_rotations"]
