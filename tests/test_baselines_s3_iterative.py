@@ -154,6 +154,8 @@ def test_residual_overhang_on_the_ball_is_next_to_the_floor():
     "inner top arch, where the heat-method growth direction from the (off-centre) bottom band meets itself (its cut "
     "locus, x = -7 mm): the two sides are turned in opposite senses and the smoothing leaves the faces between "
     "unrotated (deformed normal z -0.97 there, -0.42 to -0.56 on its left); 1-4 outer iterations all leave 0.96 %. "
+    "Neither difference found outside the loop closes it: S3's heat diffusion time (t = 100 h^2, heatMethod.cpp:257) "
+    "gives 0.98 %, its inverse-deformation post-processing of the field (s3.layer_field) 1.29 %. "
     "See docs/baselines.md"))
 def test_ring_iterative_at_most_one_shot():
     from neuralslicer.baselines.s3 import optimise_s3
