@@ -18,7 +18,8 @@ Every outer iteration (``runASAP_SupportLess_test3``, ``runASAP_StrengthReinforc
 
 The field is the height of the deformed mesh at its vertices (``_cal_virtual_Vfield``): the curved layers are its
 level sets in the model space. With ``layer_field: inverse_deformation`` it is what S3's GUI slices instead
-(``MainWindow::inverseDeformation``): the height's unit gradient, smoothed and integrated back.  Numpy/scipy only: sparse systems, each factorised once per outer iteration.
+(``MainWindow::inverseDeformation``): the height's unit gradient, smoothed and integrated back.  Numpy/scipy only:
+sparse systems, each factorised once per outer iteration.
 """
 from __future__ import annotations
 
@@ -169,11 +170,12 @@ class S3DeformResult:
     """S3's deformation of one tet mesh.
 
     G : (n,) the layer field at the mesh vertices: the deformed height, or S3's post-processed field of it
-    (``layer_field: inverse_deformation``, :func:`inverse_deformation_field`); deformed : (n,3); rotations : (m,3,3) the smoothed target
-    rotations of the last inner iteration; scales : (m,3) per-axis element scales; history : 'fabrication_sl',
-    'fabrication_sr' (S3's energies of the deformed mesh at the start of each outer iteration and after the last),
-    'asap' (the ASAP residual of each solve), 'inner_sl', 'inner_sr' (the inner-loop energies), 'critical' (the
-    number of critical tets per outer iteration); satisfaction : overhang area fractions of the boundary faces.
+    (``layer_field: inverse_deformation``, :func:`inverse_deformation_field`); deformed : (n,3); rotations : (m,3,3)
+    the smoothed target rotations of the last inner iteration; scales : (m,3) per-axis element scales; history :
+    'fabrication_sl', 'fabrication_sr' (S3's energies of the deformed mesh at the start of each outer iteration and
+    after the last), 'asap' (the ASAP residual of each solve), 'inner_sl', 'inner_sr' (the inner-loop energies),
+    'critical' (the number of critical tets per outer iteration); satisfaction : overhang area fractions of the
+    boundary faces.
     """
 
     G: np.ndarray
@@ -401,8 +403,8 @@ def inverse_deformation_field(vertices: np.ndarray, tets: np.ndarray, height: np
                     sy += y[j]
                     sz += z[j]
                 r = math.sqrt(sx * sx + sy * sy + sz * sz)
-                if r > 0.0:
-                    x[e], y[e], z[e] = sx / r, sy / r, sz / r
+                r = r if r > 0.0 else 1.0  # Eigen's normalize() leaves a zero sum as it is
+                x[e], y[e], z[e] = sx / r, sy / r, sz / r
         v = np.stack([x, y, z], axis=1)
     rows = (3 * np.arange(m)[:, None, None] + np.arange(3)[None, None, :]).repeat(4, axis=1)  # (m,4,3)
     cols = np.broadcast_to(T[:, :, None], (m, 4, 3))
