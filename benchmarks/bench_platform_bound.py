@@ -1,0 +1,79 @@
+"""How much of planar layers' overhang can any field remove on a part, given only that the print head stays above
+the platform? An optimistic bound that tells a target the head cannot reach from one the optimiser misses.
+
+    .venv/bin/python benchmarks/bench_platform_bound.py [NAME.stl ...]   # default: the 200 mm bunny and coin
+
+For every point of an even sample of the surface (platform contact left out, as the overhang metric does), every
+tool axis of a 2° x 10° grid (tilt x azimuth) is tried at that point; an axis is allowed when the head (the machine
+profile's nozzle: cone and holder, `HeadShape.lowest`, the same geometry as L_GC's platform term and the exact
+check) stays above the platform with its tip there. The point stays overhanging when no allowed axis brings its
+overhang angle to α = 45° or below. Everything else a print must respect is left out: material printed earlier
+(the holder sweeping over the part), the field being one smooth function (neighbouring points share their axis),
+layer thickness limits, the machine's axis range. A real field can only do worse than this bound.
+Results: benchmarks/results/bench_platform_bound.json.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from neuralslicer.data import sample
+from neuralslicer.motion.profile import Nozzle
+from neuralslicer.neural.head_collision import HeadShape
+
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_platform_bound.json"
+ALPHA_DEG = 45.0
+
+
+def axes_grid(tilt_step_deg: float = 2.0, azimuth_step_deg: float = 10.0) -> np.ndarray:
+    """Unit tool axes (k,3) on a tilt x azimuth grid, tilt 0..90°."""
+    tilt = np.radians(np.arange(0.0, 90.0 + 1e-9, tilt_step_deg))
+    azimuth = np.radians(np.arange(0.0, 360.0, azimuth_step_deg))
+    t, a = (g.ravel() for g in np.meshgrid(tilt, azimuth))
+    return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=1)
+
+
+def platform_bound(mesh: trimesh.Trimesh, head: HeadShape, n_points: int = 40_000, seed: int = 0) -> dict:
+    """Planar overhang area fraction and the least any head-above-platform field could leave, on surface samples."""
+    points, faces = trimesh.sample.sample_surface_even(mesh, n_points, seed=seed)
+    normals = mesh.face_normals[faces]
+    height = points[:, 2] - mesh.bounds[0, 2]
+    keep = ~((height < 0.5) & (normals[:, 2] < -0.9))  # the platform contact is not an overhang
+    normals, height = normals[keep], height[keep]
+    axes = axes_grid()
+    lowest = head.lowest(torch.as_tensor(axes)).numpy()
+    planar = np.degrees(np.arcsin(np.clip(-normals[:, 2], -1.0, 1.0))) > ALPHA_DEG
+    best = np.empty(len(height))
+    for i in range(0, len(height), 2000):
+        allowed = height[i:i + 2000, None] + lowest[None, :] >= 0.0
+        angle = np.degrees(np.arcsin(np.clip(-(normals[i:i + 2000] @ axes.T), -1.0, 1.0)))
+        best[i:i + 2000] = np.where(allowed, angle, np.inf).min(axis=1)
+    left = best > ALPHA_DEG
+    return {"samples": int(len(height)), "overhang_planar": float(planar.mean()), "overhang_bound": float(left.mean()),
+            "reduction_bound": float(1.0 - left.mean() / planar.mean()) if planar.any() else None,
+            "bound_left_below_mm": {str(z): float((left & (height < z)).mean()) for z in (2, 5, 10, 20)}}
+
+
+def main(names: list[str]) -> None:
+    """Bound every model named (shipped z-up STLs), print and write the JSON."""
+    nozzle = Nozzle()
+    head = HeadShape.from_nozzle(nozzle, 0.5)
+    results = {"nozzle": nozzle.model_dump(mode="json"), "alpha_deg": ALPHA_DEG, "models": {}}
+    for name in names or ["bunny_closed_low_res.stl", "overhang_coin_closed_low_res.stl"]:
+        row = platform_bound(trimesh.load(sample(name), force="mesh"), head)
+        results["models"][name] = row
+        print(f"{name}: planar {100 * row['overhang_planar']:.1f} %, at best {100 * row['overhang_bound']:.1f} % "
+              f"({100 * row['reduction_bound']:.0f} % removed at most); left within 5 mm of the platform: "
+              f"{100 * row['bound_left_below_mm']['5']:.1f} %", flush=True)
+    tmp = RESULTS.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(results, indent=2))
+    tmp.replace(RESULTS)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
