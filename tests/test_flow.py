@@ -212,7 +212,11 @@ def test_unknown_option_is_one_line_exit_2(tmp_path, small_part, capsys):
 def test_default_objectives_are_print_head_aware_with_the_local_constraint(tmp_path, small_part):
     # enough steps to leave the planar start on every cage (with 20, a run whose first steps raised
     # the loss returned its best iterate, the planar start); the constraint stop ends it earlier
-    cfg = write_config(tmp_path / "cfg.yaml", neural={"optim": {"max_steps": 300, "checkpoint_every": 50}})
+    # with the command's collision refinements (not the fast configuration's none): the pool is a sample of the
+    # solid, so on some cages (fTetWild's are not bit-reproducible) the first print has a stray hit or two that a
+    # refinement round clears; the blend and the smoothing retries stay off, so the printed field is optimised
+    cfg = write_config(tmp_path / "cfg.yaml", neural={"optim": {"max_steps": 300, "checkpoint_every": 50}},
+                       collision_refinements=3)
     out = tmp_path / "run"
     assert main(slice_cmd(small_part, out, cfg)) == 0
     metrics = json.loads((out / "metrics.json").read_text())
@@ -220,7 +224,9 @@ def test_default_objectives_are_print_head_aware_with_the_local_constraint(tmp_p
     # L_CA = 0 holds in the stored field, the pool sees no head collision, the program has none
     assert metrics["loss.ca_violating_pairs"] == 0 and metrics["loss.ca"] == 0
     assert metrics["loss.gc_colliding_pairs"] == 0 and "loss.gc" in metrics
-    assert metrics["n_collisions"] == 0
+    assert metrics["n_collisions"] == 0 and metrics["field.blend_planar"] == 0.0
+    # the first print is clean or nearly so (stray hits only: the pool saw the head's reach)
+    assert metrics.get("collision_resolution.0.collisions", 0) <= 10
     assert metrics["sf.overhang_area_fraction"] < metrics["sf.overhang_area_fraction_planar"]
     assert (out / "figures" / "collisions.png").is_file()
 
