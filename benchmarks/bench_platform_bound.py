@@ -3,15 +3,16 @@ the platform? An optimistic bound that tells a target the head cannot reach from
 
     .venv/bin/python benchmarks/bench_platform_bound.py [NAME.stl ...]   # default: the 200 mm bunny and coin
 
-For every point of an even sample of the surface (platform contact left out, as the overhang metric does), every
-tool axis of a 2° x 10° grid (tilt x azimuth) is tried at that point; an axis is allowed when the head (the machine
-profile's nozzle: cone and holder, `HeadShape.lowest`, the same geometry as L_GC's platform term and the exact
-check) stays above the platform with its tip there, either as it is or, as the planner does
-(`motion.reorient.clamp_to_platform`), after turning it up toward +z by at most `toolpath.collision_tilt_deg` (15°;
-the overhang metrics judge the layers, not the turned axis, so both figures are given). The point stays overhanging when no allowed axis brings its
-overhang angle to α = 45° or below. Everything else a print must respect is left out: material printed earlier
-(the holder sweeping over the part), the field being one smooth function (neighbouring points share their axis),
-layer thickness limits, the machine's axis range. A real field can only do worse than this bound.
+For every held-out surface sample of the overhang metric (`metrics.heldout_surface_samples`, platform contact left
+out as the metric does), every tool axis of a 2° x 10° grid (tilt x azimuth) is tried at that point; an axis is
+allowed when the head (the machine profile's nozzle: cone and holder, `HeadShape.lowest`, the same geometry as
+L_GC's platform term and the exact check) stays above the platform with its tip there, either as it is or, as the
+planner does (`motion.reorient.clamp_to_platform`), after turning it up toward +z by at most
+`toolpath.collision_tilt_deg` (15°; the overhang metrics judge the layers, not the turned axis, so both figures are
+given). The point stays overhanging when no allowed axis brings its overhang angle to α = 45° or below. Everything
+else a print must respect is left out: material printed earlier (the holder sweeping over the part), the field being
+one smooth function (neighbouring points share their axis), layer thickness limits, the machine's axis range. A real
+field can only do worse than this bound.
 Results: benchmarks/results/bench_platform_bound.json.
 """
 from __future__ import annotations
@@ -25,6 +26,7 @@ import torch
 import trimesh
 
 from neuralslicer.data import sample
+from neuralslicer.metrics import heldout_surface_samples, overhang_area_fraction
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.neural.head_collision import HeadShape
 from neuralslicer.toolpath.config import ToolpathConfig
@@ -41,29 +43,26 @@ def axes_grid(tilt_step_deg: float = 2.0, azimuth_step_deg: float = 10.0) -> np.
     return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=1)
 
 
-def platform_bound(mesh: trimesh.Trimesh, head: HeadShape, turn_deg: float = 0.0, n_points: int = 40_000,
-                   seed: int = 0) -> dict:
-    """Planar overhang area fraction and the least any head-above-platform field could leave, on surface samples."""
-    points, faces = trimesh.sample.sample_surface_even(mesh, n_points, seed=seed)
-    normals = mesh.face_normals[faces]
-    height = points[:, 2] - mesh.bounds[0, 2]
-    keep = ~((height < 0.5) & (normals[:, 2] < -0.9))  # the platform contact is not an overhang
-    normals, height = normals[keep], height[keep]
+def platform_bound(mesh: trimesh.Trimesh, head: HeadShape, turn_deg: float = 0.0, n_points: int = 40_000) -> dict:
+    """Planar overhang area fraction and the least any head-above-platform field could leave, on the held-out
+    surface samples of the overhang metric (its platform flags included)."""
+    platform_z = float(mesh.bounds[0, 2])
+    points, normals, areas, on_platform = heldout_surface_samples(mesh, n_points, platform_z)
+    planar = overhang_area_fraction(normals, areas, on_platform, np.tile([0.0, 0.0, 1.0], (len(points), 1)), ALPHA_DEG)
+    keep = ~on_platform
+    normals, height = normals[keep], points[keep, 2] - platform_z
     axes = axes_grid()
-    tilt = np.arccos(np.clip(axes[:, 2], -1.0, 1.0))
-    turned = np.maximum(tilt - np.radians(turn_deg), 0.0)  # the planner's turn toward +z, azimuth kept
-    scale = np.where(np.sin(tilt) > 1e-12, np.sin(turned) / np.maximum(np.sin(tilt), 1e-12), 0.0)
-    clear = np.column_stack([axes[:, 0] * scale, axes[:, 1] * scale, np.cos(turned)])
-    lowest = head.lowest(torch.as_tensor(clear)).numpy()
-    planar = np.degrees(np.arcsin(np.clip(-normals[:, 2], -1.0, 1.0))) > ALPHA_DEG
+    # the head's lowest rim depends on the axis' tilt alone: the planner turns it toward +z by up to turn_deg
+    turned = np.maximum(np.arccos(np.clip(axes[:, 2], -1.0, 1.0)) - np.radians(turn_deg), 0.0)
+    lowest = head.lowest(torch.as_tensor(np.column_stack([np.sin(turned), 0.0 * turned, np.cos(turned)]))).numpy()
     best = np.empty(len(height))
     for i in range(0, len(height), 2000):
         allowed = height[i:i + 2000, None] + lowest[None, :] >= 0.0
         angle = np.degrees(np.arcsin(np.clip(-(normals[i:i + 2000] @ axes.T), -1.0, 1.0)))
         best[i:i + 2000] = np.where(allowed, angle, np.inf).min(axis=1)
-    left = best > ALPHA_DEG
-    return {"samples": int(len(height)), "overhang_planar": float(planar.mean()), "overhang_bound": float(left.mean()),
-            "reduction_bound": float(1.0 - left.mean() / planar.mean()) if planar.any() else None,
+    left = best > ALPHA_DEG  # equal areas: the share of samples is the area fraction
+    return {"samples": int(len(height)), "overhang_planar": planar, "overhang_bound": float(left.mean()),
+            "reduction_bound": float(1.0 - left.mean() / planar) if planar > 0 else None,
             "bound_left_below_mm": {str(z): float((left & (height < z)).mean()) for z in (2, 5, 10, 20)}}
 
 
