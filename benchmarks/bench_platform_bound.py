@@ -52,9 +52,7 @@ def platform_bound(mesh: trimesh.Trimesh, head: HeadShape, turn_deg: float = 0.0
     keep = ~on_platform
     normals, height = normals[keep], points[keep, 2] - platform_z
     axes = axes_grid()
-    # the head's lowest rim depends on the axis' tilt alone: the planner turns it toward +z by up to turn_deg
-    turned = np.maximum(np.arccos(np.clip(axes[:, 2], -1.0, 1.0)) - np.radians(turn_deg), 0.0)
-    lowest = head.lowest(torch.as_tensor(np.column_stack([np.sin(turned), 0.0 * turned, np.cos(turned)]))).numpy()
+    lowest = head.lowest(torch.as_tensor(axes), np.radians(turn_deg)).numpy()  # turned toward +z as the planner does
     best = np.empty(len(height))
     for i in range(0, len(height), 2000):
         allowed = height[i:i + 2000, None] + lowest[None, :] >= 0.0

@@ -50,6 +50,33 @@ def test_lowest_rim_is_the_platform_clearance_of_the_motion_planner(rng):
     np.testing.assert_allclose(np.minimum(low, 0.0), exact, atol=1e-9)
 
 
+def test_turned_lowest_rim_clears_the_platform_where_the_planners_turn_does(rng):
+    """L_GC's platform terms with the planner's turn (``toolpath.collision_tilt_deg``): a head whose lowest rim,
+    the axis turned toward +z by up to 15°, lies above the platform is exactly one the planner's turn
+    (``clamp_to_platform``) leaves clear of it, by the exact platform clearance of the turned axis."""
+    from neuralslicer.motion.reorient import clamp_to_platform
+
+    n = 20_000
+    head, turn = HeadShape.from_nozzle(Nozzle(), 0.5), 15.0
+    tips = np.column_stack([rng.uniform(-20, 20, (n, 2)), rng.uniform(0.0, 45.0, n)])
+    axes = _unit(rng.normal(size=(n, 3)))
+    tp = Toolpaths(layer=np.zeros(n, np.int64), path=np.arange(n), xyz=tips, axis=axes, thickness=np.full(n, 0.3),
+                   width=np.full(n, 0.5), extrude=np.ones(n, bool))
+    turned, _ = clamp_to_platform(tp, Nozzle(), 0.0, turn)
+    cleared = platform_clearance(tips, turned.axis, Nozzle(), 0.0) >= 0.0
+    above = tips[:, 2] + head.lowest(torch.from_numpy(axes), math.radians(turn)).numpy()
+    # the planner keeps a 0.01 mm margin (also at the tip itself); axes pointing down past 120° (no layer is printed
+    # so) have their lowest rim rise again as they turn, which the planner's bound leaves out
+    decided = (np.abs(above) > 0.05) & (tips[:, 2] > 0.05) & (axes[:, 2] > -0.5)
+    assert 0.1 < cleared[decided].mean() < 0.9 and decided.mean() > 0.7
+    np.testing.assert_array_equal(cleared[decided], above[decided] >= 0.0)
+    # more room than without the turn, and none for an axis already within the turn of +z
+    plain = head.lowest(torch.from_numpy(axes)).numpy()
+    assert (tips[:, 2] + plain >= 0).sum() < (above >= 0).sum()
+    near = axes[:, 2] > math.cos(math.radians(turn))
+    np.testing.assert_allclose(above[near] - tips[near, 2], head.cone_length, atol=1e-9)   # upright: the cone base
+
+
 def _box_problem(rng, n_points: int = 300, clearance: float = 1.0):
     """A 20 mm box cage, a pool of points inside it and a curved field G (valleys that collide)."""
     V, T = box_tet_grid((5, 5, 5), np.zeros(3), np.full(3, 20.0))

@@ -98,8 +98,13 @@ class LossConfig(BaseModel):
     gc_floor: bool = Field(
         True, description="L_GC's platform term also at every cage tet with solid within the head's reach of the "
         "platform, at its lowest solid point along its LPD (the floor; off: at the pool's points only)")
+    gc_platform_turn_deg: float = Field(
+        0.0, ge=0, le=45,
+        description="L_GC's platform and floor terms judge the head with its axis turned toward +z by up to this "
+        "(deg), as the motion planner turns axes whose head would dip below the platform; the pipeline sets it to "
+        "toolpath.collision_tilt_deg (0: the head along the LPD itself)")
     gc_floor_weight: float = Field(
-        1.0, ge=0, description="weight of the floor's platform penalties within L_GC, relative to a pool cell of "
+        10.0, ge=0, description="weight of the floor's platform penalties within L_GC, relative to a pool cell of "
         "solid (its penalties are quadratic, so a settled field's platform shortfall falls about as 1/weight)")
 
     correction_steps: int = Field(
@@ -286,10 +291,12 @@ class NeuralConfig(BaseModel):
     device: str = Field("auto", description="'auto' (CUDA if available), 'cpu', 'cuda', 'cuda:1'")
     dtype: Literal["float32", "float64"] = Field("float32", description="network/loss precision")
 
-    def with_head(self, nozzle: Nozzle, min_height: float) -> "NeuralConfig":
+    def with_head(self, nozzle: Nozzle, min_height: float, platform_turn_deg: float = 0.0) -> "NeuralConfig":
         """This config with the machine's print head for L_GC and L_CA; material closer than min_height
-        (the line width, at least 0.3 mm, as in the motion planner's check) to the tip is the bead."""
-        loss = self.loss.model_copy(update={"head": nozzle, "head_min_height": max(0.3, float(min_height))})
+        (the line width, at least 0.3 mm, as in the motion planner's check) to the tip is the bead; the planner
+        turns axes at the platform by up to platform_turn_deg (``toolpath.collision_tilt_deg``)."""
+        loss = self.loss.model_copy(update={"head": nozzle, "head_min_height": max(0.3, float(min_height)),
+                                            "gc_platform_turn_deg": float(platform_turn_deg)})
         return self.model_copy(update={"loss": loss})
 
     def for_objectives(self, objectives: list[str]) -> "NeuralConfig":

@@ -17,7 +17,8 @@ tip never does (for a locally planar field the two conditions exclude each other
 zero for a collision-free field with its margins, and its gradient moves the head axis ``d_p``
 (tilting the head away) and the print order ``G`` (printing ``x`` later or ``p`` earlier). The
 head's lowest point below the platform adds ``relu(c_p - (z_low - platform_z))^2`` with the
-platform clearance ``c_p = min(clearance, cone_length / 2)`` (the platform is exact: only the tip
+platform clearance ``c_p = min(clearance, cone_length / 2)``, the head's axis turned toward +z by as much as the
+motion planner turns axes at the platform (``toolpath.collision_tilt_deg``, 15°) first (the platform is exact: only the tip
 between pool points and the tool axis blur it, and a vertical head at the platform, whose rim is
 ``cone_length`` above its tip, must stay free). The same penalty, with a 0.5 mm margin and weighted by volume,
 holds at every cage tet that has solid within the head's reach of the platform (``FloorTets``), placed at the
@@ -90,11 +91,16 @@ class HeadShape:
                                self.holder_radius + inflate - r)
         return torch.maximum(cone, holder)
 
-    def lowest(self, axis: torch.Tensor) -> torch.Tensor:
+    def lowest(self, axis: torch.Tensor, turn: float = 0.0) -> torch.Tensor:
         """Height of the lowest rim of the head (cone base, holder ends) above its tip (k,) for unit
-        axes (k,3); the head reaches below its tip iff this is negative (exact)."""
+        axes (k,3); the head reaches below its tip iff this is negative (exact). ``turn`` (rad): each axis
+        first turned toward +z by up to this much, azimuth kept, as the motion planner turns axes whose head
+        would dip below the platform (``motion.reorient.clamp_to_platform``); the rim depends on the tilt alone."""
         az = axis[:, 2].clamp(-1.0, 1.0)
         horiz = (1.0 - az * az).clamp_min(0.0).add(1e-12).sqrt()
+        if turn > 0:
+            tilt = (torch.atan2(horiz, az) - turn).clamp_min(0.0)
+            az, horiz = torch.cos(tilt), torch.sin(tilt)
         L = self.cone_length
         low = L * az - L * math.tan(self.half_angle) * horiz
         if self.holder_length > 0:
@@ -344,7 +350,9 @@ class HeadCollision:
     A refined pool (see :class:`CollisionPool`): n_base : the first n_base points are the base pool
     (None: all), paired by the KD-tree query; links, link_radius : the added points are paired along
     them (:func:`link_pairs`, at most max_link_pairs ordered pairs). The loss is normalised by n_base,
-    so refinement does not dilute the base pool's penalties.
+    so refinement does not dilute the base pool's penalties. platform_turn (rad): the platform and floor
+    terms judge each head with its axis turned toward +z by up to this much, as the motion planner turns axes
+    that would dip below the platform (0: the LPD itself).
     """
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, bary: np.ndarray, cage_tets: np.ndarray,
@@ -352,7 +360,7 @@ class HeadCollision:
                  length: float, margin: float, device: torch.device, dtype: torch.dtype, *,
                  n_base: int | None = None, links: np.ndarray | None = None, link_radius: float = 0.0,
                  max_link_pairs: int = 10_000_000, floor: FloorTets | None = None,
-                 floor_weight: float = 1.0) -> None:
+                 floor_weight: float = 1.0, platform_turn: float = 0.0) -> None:
         self.points = np.asarray(points, np.float64)
         self.n_base = len(self.points) if n_base is None else int(n_base)
         reach = head.reach + clearance + lift + margin
@@ -369,6 +377,7 @@ class HeadCollision:
         self.head, self.platform_z = head, platform_z
         self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
         self.platform_clearance = min(clearance, 0.5 * head.cone_length)
+        self.platform_turn = float(platform_turn)
         self.device, self.dtype = device, dtype
         self.tet = np.asarray(tets, np.int64)
         self.vertex_ids = torch.as_tensor(np.asarray(cage_tets, np.int64)[self.tet], device=device)
@@ -431,7 +440,7 @@ class HeadCollision:
         g, d, norm = self.values(G, grad)
         self.pairs = self._select(g, d, norm, self.clearance + self.margin, self.lift + self.margin)
         if self.platform_z is not None:
-            clear = self.points_t[:, 2] + self.head.lowest(d) - self.platform_z
+            clear = self.points_t[:, 2] + self.head.lowest(d, self.platform_turn) - self.platform_z
             self.low_points = torch.nonzero(clear < self.platform_clearance + self.margin).flatten()
         return int(len(self.pairs))
 
@@ -439,7 +448,7 @@ class HeadCollision:
         """Height above the platform (mm) of the head's lowest rim at the lowest solid point of each floor tet,
         along that tet's LPD (f,): negative where the head reaches below the platform there."""
         d = grad[self.floor_tets]
-        return self.floor_z + self.head.lowest(d / d.norm(dim=1, keepdim=True).clamp_min(1e-12))
+        return self.floor_z + self.head.lowest(d / d.norm(dim=1, keepdim=True).clamp_min(1e-12), self.platform_turn)
 
     def penalties(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(per active pair c(p, x) (a,), per platform candidate penalty (b,): pool points, then floor tets
@@ -450,7 +459,7 @@ class HeadCollision:
         plat = [G.new_zeros(0)]
         low = self.low_points
         if self.platform_z is not None and len(low):
-            clear = self.points_t[low, 2] + self.head.lowest(d[low]) - self.platform_z
+            clear = self.points_t[low, 2] + self.head.lowest(d[low], self.platform_turn) - self.platform_z
             plat.append(torch.relu(self.platform_clearance - clear) ** 2)
         if self.n_floor:
             plat.append(self.floor_weights * torch.relu(self.floor_clearance - self.floor_clear(grad)) ** 2)
@@ -473,7 +482,7 @@ class HeadCollision:
         n_pairs = len(bad)
         n_low = 0
         if self.platform_z is not None:
-            low = self.points_t[:, 2] + self.head.lowest(d) - self.platform_z < inflate
+            low = self.points_t[:, 2] + self.head.lowest(d, self.platform_turn) - self.platform_z < inflate
             n_low = int(low.sum())
             hit |= low
         n_floor = int((self.floor_clear(grad) < inflate).sum()) if self.n_floor else 0

@@ -108,7 +108,7 @@ class FieldProblem:
                              cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype,
                              n_base=pool.n_base, links=pool.links, link_radius=pool.link_radius,
                              max_link_pairs=self.config.optim.refine.max_pairs, floor=floor,
-                             floor_weight=cl.gc_floor_weight)
+                             floor_weight=cl.gc_floor_weight, platform_turn=math.radians(cl.gc_platform_turn_deg))
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
         """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
