@@ -6,6 +6,8 @@ optimisation step and peak memory for the default and `paper` networks, and the 
     python benchmarks/bench_neural.py ring             # Ring, SF only: overhang vs planar, 3 initial guesses
     python benchmarks/bench_neural.py bridge           # the paper's Bridge size: a real part's cage at 47k tets,
                                                        # default objectives, per step and to convergence
+    python benchmarks/bench_neural.py loaded           # time/step alone and two optimisations at once, per OpenMP
+                                                       # spin setting (what a busy shared node does to a run)
     python benchmarks/bench_neural.py all
 
 Prints a table per part and merges the figures into benchmarks/results/bench_neural.json.
@@ -178,6 +180,42 @@ def bench_steps(sizes: list[str], networks: list[str], steps: int, device: str) 
     return rows
 
 
+def _step_proc(size: str, steps: int, env: dict[str, str]) -> subprocess.Popen:
+    """A `_step` measurement of the default network in a subprocess with the given environment additions."""
+    return subprocess.Popen([sys.executable, __file__, "_step", size, "default", str(steps), "cpu"],
+                            stdout=subprocess.PIPE, text=True, env={**os.environ, **env})
+
+
+def _step_ms(proc: subprocess.Popen) -> float:
+    """Median ms per step a `_step` subprocess reported."""
+    out, _ = proc.communicate()
+    if proc.returncode:
+        raise RuntimeError(f"_step failed with exit status {proc.returncode}")
+    return 1e3 * json.loads(out.strip().splitlines()[-1])["step_s"]
+
+
+def bench_loaded(size: str, steps: int) -> list[dict]:
+    """ms/step of one optimisation alone and of two at once (a shared node), per OpenMP wait setting."""
+    from neuralslicer.neural.device import GOMP_SPINCOUNT
+
+    settings = {"libgomp default (300000 spins)": {"GOMP_SPINCOUNT": "300000"},
+                f"GOMP_SPINCOUNT={GOMP_SPINCOUNT} (ours)": {"GOMP_SPINCOUNT": str(GOMP_SPINCOUNT)},
+                "OMP_WAIT_POLICY=PASSIVE": {"OMP_WAIT_POLICY": "PASSIVE"}}
+    rows = []
+    for name, env in settings.items():
+        alone = _step_ms(_step_proc(size, steps, env))
+        pair = [_step_proc(size, steps, env) for _ in range(2)]
+        both = [_step_ms(p) for p in pair]
+        rows.append({"setting": name, "size": size, "alone_ms": alone, "two_at_once_ms": float(np.mean(both)),
+                     "slowdown": float(np.mean(both)) / alone})
+    base = rows[0]["alone_ms"]
+    print(f"\n{'OpenMP setting':>34} {'alone ms':>9} {'two at once ms':>15} {'x own alone':>12} {'x default alone':>16}")
+    for r in rows:
+        print(f"{r['setting']:>34} {r['alone_ms']:>9.1f} {r['two_at_once_ms']:>15.1f} {r['slowdown']:>12.1f} "
+              f"{r['two_at_once_ms'] / base:>16.1f}")
+    return rows
+
+
 def ring_inputs(n_elements: int = 5000, n_samples: int = 8000) -> dict[str, np.ndarray]:
     """Ring (y-up) -> solid -> samples B -> cage, with the project's own modules."""
     from neuralslicer.cage import CageConfig, build_cage, interior_points
@@ -287,7 +325,7 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(_step_case(size, network, steps, device)))
         return
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("part", choices=["solve", "steps", "ring", "bridge", "all"])
+    p.add_argument("part", choices=["solve", "steps", "loaded", "ring", "bridge", "all"])
     p.add_argument("--bridge-model", default=str(Path(os.environ.get("NEURALSLICER_DATA", Path(__file__).resolve().parents[1] / "neuralslicer" / "data"))
                                                    / "topopt_new4.tet"))
     p.add_argument("--bridge-up", default="y")
@@ -312,6 +350,10 @@ def main(argv: list[str] | None = None) -> None:
         if not a.no_save:
             _merge(f"steps_{rows[0]['device'] if rows else a.device}", rows)
             _merge(f"steps_scaling_{rows[0]['device'] if rows else a.device}", fit)
+    if a.part in ("loaded", "all"):
+        rows = bench_loaded(sizes[min(1, len(sizes) - 1)], max(a.steps, 40))
+        if not a.no_save:
+            _merge("loaded_cpu", rows)
     if a.part in ("ring", "all"):
         _merge("ring", bench_ring(a.inits.split(","), Path(a.ring_cache) if a.ring_cache else None))
     if a.part in ("bridge", "all"):

@@ -264,6 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     exit status also when interrupted)."""
     parser = make_parser()
     args = parser.parse_args(argv)
+    limit_threads()  # before anything imports torch: its OpenMP reads the thread and spin settings once
     _on_sigterm()
     try:
         return int(args.func(args) or 0)

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -188,6 +190,26 @@ def test_threads_follow_the_cpus_available(tmp_path, monkeypatch):
     assert device.available_cpus(quota) == 2
     quota.write_text("max 100000\n")
     assert device.available_cpus(quota) == 8
+
+
+def _fresh_env(code: str, **env: str) -> str:
+    """What a fresh interpreter prints running ``code`` (GOMP_SPINCOUNT unset unless given)."""
+    base = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    return subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def test_the_command_shortens_openmp_spinning_before_torch_loads():
+    """Idle OpenMP workers spinning 300,000 times starve a second job on a shared node (two optimisations ran 27x
+    slower each); the command sets a short spin before torch (and its libgomp) is imported, and a user's value
+    stands."""
+    code = ("import os, sys; from neuralslicer.cli.main import main; main(['slice', 'no-such-model.stl', '--out', 'never-made']); "
+            "print(os.environ.get('GOMP_SPINCOUNT'), 'torch' in sys.modules)")
+    assert _fresh_env(code) == "5000 False"
+    assert _fresh_env(code, GOMP_SPINCOUNT="123") == "123 False"
+    late = "import os, torch; from neuralslicer.neural.device import limit_threads; limit_threads(); " \
+           "print(os.environ.get('GOMP_SPINCOUNT'))"
+    assert _fresh_env(late) == "None"      # too late to matter once torch is loaded: left alone
 
 
 def test_studies_run_the_same_checks(tmp_path, part, capsys):
