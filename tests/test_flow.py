@@ -361,4 +361,6 @@ def test_refinement_rounds_do_not_use_up_the_retries(tmp_path, small_part):
     store = ArtifactStore(str(out / "store.zarr"), create=False)
     weights = sorted(store.attrs(f"lpart/field/{d}")["config"]["loss"]["gc_floor_weight"]
                      for d in store.children("lpart/field"))
-    assert weights == [1.0, 3.0]
+    from neuralslicer.neural.config import LossConfig, RefineConfig
+    w = LossConfig().gc_floor_weight
+    assert weights == [w, w * RefineConfig().floor_weight_factor]
