@@ -53,6 +53,12 @@ def test_platform_collision_when_tilted_low():
     expected = np.flatnonzero(tp.xyz[:, 2] + low < -1e-6)
     assert np.array_equal(np.sort(rep.indices), expected)
     assert np.allclose(platform_clearance(tp.xyz, tp.axis, NOZZLE, 0.0), tp.xyz[:, 2] + low)
+    # a subset (in any order, repeats allowed) is judged at its own waypoints only
+    some = np.concatenate([expected[::2], np.arange(len(tp))[::5]])[::-1]
+    part = check_collisions(tp, NOZZLE, platform_z=0.0, only=some)
+    mine = np.isin(rep.indices, some)
+    assert np.array_equal(part.indices, rep.indices[mine]) and np.array_equal(part.kind, rep.kind[mine])
+    assert np.allclose(part.locations, rep.locations[mine]) and 0 < part.count < rep.count
 
 
 def _assert_exact(tips: np.ndarray, axes: np.ndarray, pts: np.ndarray) -> None:

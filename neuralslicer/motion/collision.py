@@ -192,15 +192,19 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
         min_height = default_min_height(tp)
     material = PrintedMaterial.of_toolpaths(tp) if material is None else material
     visible = material.visible_at(tp)
-    wanted = np.ones(n, bool) if only is None else np.isin(np.arange(n), only)
+    if only is None:
+        wanted = np.ones(n, bool)
+    else:
+        wanted = np.zeros(n, bool)
+        wanted[np.asarray(only, np.int64)] = True
+    ask = np.flatnonzero(wanted)
     hit, loc, kind = np.zeros(n, bool), np.zeros((n, 3)), np.zeros(n, np.int8)
-    # platform (exact)
-    plat = (platform_clearance(tp.xyz, tp.axis, nozzle, platform_z) < -platform_tolerance) & wanted
-    hit |= plat
-    loc[plat] = np.c_[tp.xyz[plat, :2], np.full(int(plat.sum()), platform_z)]
+    # platform (exact), at the waypoints asked about only
+    plat = ask[platform_clearance(tp.xyz[ask], tp.axis[ask], nozzle, platform_z) < -platform_tolerance]
+    hit[plat] = True
+    loc[plat] = np.c_[tp.xyz[plat, :2], np.full(len(plat), platform_z)]
     kind[plat] = PLATFORM
     # the part: the waypoints, then the poses inside the moves arriving at them
-    ask = np.flatnonzero(wanted)
     s_xyz, s_axis, s_to = travel_samples(tp, travel_spacing)
     keep = wanted[s_to]
     s_xyz, s_axis, s_to = s_xyz[keep], s_axis[keep], s_to[keep]
