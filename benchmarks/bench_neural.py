@@ -164,15 +164,28 @@ def _step_case(size: str, network: str, steps: int, device: str) -> dict:
     return out
 
 
+def _step_proc(size: str, steps: int, network: str = "default", device: str = "cpu",
+               env: dict[str, str] | None = None) -> subprocess.Popen:
+    """A `_step` measurement in a subprocess (its own peak memory), with the given environment additions."""
+    return subprocess.Popen([sys.executable, __file__, "_step", size, network, str(steps), device],
+                            stdout=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
+
+
+def _step_result(proc: subprocess.Popen) -> dict:
+    """The figures a `_step` subprocess printed on its last line."""
+    out, _ = proc.communicate()
+    if proc.returncode:
+        raise RuntimeError(f"_step failed with exit status {proc.returncode}")
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def bench_steps(sizes: list[str], networks: list[str], steps: int, device: str) -> list[dict]:
     """Each (size, network) in a fresh subprocess so that peak memory is its own."""
     rows = []
     for network in networks:
         for size in sizes:
             n = steps if network != "paper" or device != "cpu" else max(1, steps // 5)
-            cmd = [sys.executable, __file__, "_step", size, network, str(n), device]
-            res = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+            rows.append(_step_result(_step_proc(size, n, network=network, device=device)))
             r = rows[-1]
             print(f"{r['network']:>8} {r['size']:>4} {r['tets']:>7} tets {r['device']:>5}: "
                   f"{1e3 * r['step_s']:9.1f} ms/step, peak RSS {r['peak_rss_MB']:8.0f} MB"
@@ -180,18 +193,9 @@ def bench_steps(sizes: list[str], networks: list[str], steps: int, device: str) 
     return rows
 
 
-def _step_proc(size: str, steps: int, env: dict[str, str]) -> subprocess.Popen:
-    """A `_step` measurement of the default network in a subprocess with the given environment additions."""
-    return subprocess.Popen([sys.executable, __file__, "_step", size, "default", str(steps), "cpu"],
-                            stdout=subprocess.PIPE, text=True, env={**os.environ, **env})
-
-
 def _step_ms(proc: subprocess.Popen) -> float:
     """Median ms per step a `_step` subprocess reported."""
-    out, _ = proc.communicate()
-    if proc.returncode:
-        raise RuntimeError(f"_step failed with exit status {proc.returncode}")
-    return 1e3 * json.loads(out.strip().splitlines()[-1])["step_s"]
+    return 1e3 * _step_result(proc)["step_s"]
 
 
 def bench_loaded(size: str, steps: int) -> list[dict]:
@@ -203,8 +207,8 @@ def bench_loaded(size: str, steps: int) -> list[dict]:
                 "OMP_WAIT_POLICY=PASSIVE": {"OMP_WAIT_POLICY": "PASSIVE"}}
     rows = []
     for name, env in settings.items():
-        alone = _step_ms(_step_proc(size, steps, env))
-        pair = [_step_proc(size, steps, env) for _ in range(2)]
+        alone = _step_ms(_step_proc(size, steps, env=env))
+        pair = [_step_proc(size, steps, env=env) for _ in range(2)]
         both = [_step_ms(p) for p in pair]
         rows.append({"setting": name, "size": size, "alone_ms": alone, "two_at_once_ms": float(np.mean(both)),
                      "slowdown": float(np.mean(both)) / alone})

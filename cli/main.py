@@ -39,7 +39,6 @@ def cmd_slice(args: argparse.Namespace) -> int:
 def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse.Namespace,
                api: LocalApi | None) -> int:
     """Run the slicing flow (against the local API once it is up) and print its summary."""
-    limit_threads()  # a run pinned to fewer cores (taskset, a cgroup quota) uses only those
     from neuralslicer.flows.slice import ensure_store, slice_flow
 
     store = ensure_store(store)
@@ -264,7 +263,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     exit status also when interrupted)."""
     parser = make_parser()
     args = parser.parse_args(argv)
-    limit_threads()  # before anything imports torch: its OpenMP reads the thread and spin settings once
+    limit_threads()  # before anything imports torch (its OpenMP reads the thread and spin settings once); a run
+    # pinned to fewer cores (taskset, a cgroup quota) uses only those
     _on_sigterm()
     try:
         return int(args.func(args) or 0)

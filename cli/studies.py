@@ -8,7 +8,6 @@ from typing import Any
 from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
 from neuralslicer.flows.settings import cache_settings, prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
-from neuralslicer.neural.device import limit_threads
 
 
 def parse_counts(text: str) -> list[int]:
@@ -58,7 +57,6 @@ def cmd_study(args: argparse.Namespace) -> int:
 
     def job() -> int:
         prefect_environment()
-        limit_threads()
         from neuralslicer.flows.studies import ablation_study, batch_study, cage_study, initial_guess_study, methods_study
         from neuralslicer.storage import ArtifactStore
 

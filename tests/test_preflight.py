@@ -203,7 +203,8 @@ def test_the_command_shortens_openmp_spinning_before_torch_loads():
     """Idle OpenMP workers spinning 300,000 times starve a second job on a shared node (two optimisations ran 27x
     slower each); the command sets a short spin before torch (and its libgomp) is imported, and a user's value
     stands."""
-    code = ("import os, sys; from neuralslicer.cli.main import main; main(['slice', 'no-such-model.stl', '--out', 'never-made']); "
+    code = ("import os, sys; from neuralslicer.cli.main import main; "
+            "main(['slice', 'no-such-model.stl', '--out', 'never-made']); "
             "print(os.environ.get('GOMP_SPINCOUNT'), 'torch' in sys.modules)")
     assert _fresh_env(code) == "5000 False"
     assert _fresh_env(code, GOMP_SPINCOUNT="123") == "123 False"

@@ -105,8 +105,8 @@ class LossConfig(BaseModel):
         "toolpath.collision_tilt_deg (0: the head along the LPD itself)")
     gc_floor_weight: float = Field(
         10.0, ge=0, description="weight of the floor's platform penalties within L_GC, relative to a pool cell of "
-        "solid (its penalties are quadratic, so a settled field's platform shortfall falls about as 1/weight; the 200 mm "
-        "bunny's first print, with the platform turn: weight 1 left 43,462 colliding waypoints, 10 left 4,765, "
+        "solid (its penalties are quadratic, so a settled field's platform shortfall falls about as 1/weight; the "
+        "200 mm bunny's first print, with the platform turn: weight 1 left 43,462 colliding waypoints, 10 left 4,765, "
         "and the clean print kept 72 % of the overhang reduction)")
 
     correction_steps: int = Field(

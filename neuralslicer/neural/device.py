@@ -43,7 +43,7 @@ def available_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
 
 #: spins an idle OpenMP worker makes before it sleeps (libgomp's default is 300,000). On a node where another
 #: job wants the cores, spinning workers take the time slices the working ones need: two optimisations at once ran
-#: 16x slower each with the default, 2.3x with 5,000, and a quiet one loses under 4 % (benchmarks/bench_neural.py
+#: 27x slower each with the default, 2.3x with 5,000, and a quiet one loses under 4 % (benchmarks/bench_neural.py
 #: loaded).
 GOMP_SPINCOUNT = 5000
 

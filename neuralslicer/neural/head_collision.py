@@ -17,9 +17,9 @@ tip never does (for a locally planar field the two conditions exclude each other
 zero for a collision-free field with its margins, and its gradient moves the head axis ``d_p``
 (tilting the head away) and the print order ``G`` (printing ``x`` later or ``p`` earlier). The
 head's lowest point below the platform adds ``relu(c_p - (z_low - platform_z))^2`` with the
-platform clearance ``c_p = min(clearance, cone_length / 2)``, the head's axis turned toward +z by as much as the
-motion planner turns axes at the platform (``toolpath.collision_tilt_deg``, 15°) first (the platform is exact: only the tip
-between pool points and the tool axis blur it, and a vertical head at the platform, whose rim is
+platform clearance ``c_p = min(clearance, cone_length / 2)``, the head's axis turned toward +z by as much
+as the motion planner turns axes at the platform (``toolpath.collision_tilt_deg``, 15°) first (the platform
+is exact: only the tip between pool points and the tool axis blur it, and a vertical head at the platform, whose rim is
 ``cone_length`` above its tip, must stay free). The same penalty, with a 0.5 mm margin and weighted by volume,
 holds at every cage tet that has solid within the head's reach of the platform (``FloorTets``), placed at the
 tet's lowest solid point along the tet's LPD: exact for the field's discretisation, where pool points are a cell
