@@ -12,6 +12,7 @@ from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_
 from neuralslicer.cli.studies import add_compare_parser, add_study_parser
 from neuralslicer.flows.local_api import LocalApi, api_serving, start_local_api
 from neuralslicer.flows.settings import cache_settings, with_api_retry
+from neuralslicer.allocator import keep_freed_memory
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
 from neuralslicer.neural.device import limit_threads
@@ -265,6 +266,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     limit_threads()  # before anything imports torch (its OpenMP reads the thread and spin settings once); a run
     # pinned to fewer cores (taskset, a cgroup quota) uses only those
+    keep_freed_memory()  # big arrays reused, not faulted in again for every step (neuralslicer/allocator.py)
     _on_sigterm()
     try:
         return int(args.func(args) or 0)

@@ -16,6 +16,7 @@ from prefect.serializers import Serializer
 from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
 from prefect.states import State
 
+from neuralslicer.allocator import release_freed_memory
 from neuralslicer.provenance import package_versions
 from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
 from neuralslicer.tasks.progress import say
@@ -141,7 +142,10 @@ def pipeline_task(
                 say(f"{step}: done in {wall:.1f} s")
                 return arrays, {**attrs, "step": step, "wall_s": wall, "versions": package_versions()}
 
-            ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))
+            try:
+                ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))
+            finally:
+                release_freed_memory()   # what the step freed goes back to the kernel (neuralslicer/allocator.py)
             return out
 
         body.__signature__ = public  # type: ignore[attr-defined]

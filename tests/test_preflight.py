@@ -213,6 +213,39 @@ def test_the_command_shortens_openmp_spinning_before_torch_loads():
     assert _fresh_env(late) == "None"      # too late to matter once torch is loaded: left alone
 
 
+_MMAPPED = ("import ctypes, sys, numpy as np\n"
+            "class Info(ctypes.Structure):\n"
+            "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena ordblks smblks hblks hblkhd usmblks fsmblks "
+            "uordblks fordblks keepcost').split()]\n"
+            "mallinfo2 = ctypes.CDLL(None).mallinfo2\n"
+            "mallinfo2.restype = Info\n"
+            "from neuralslicer.allocator import keep_freed_memory\n"
+            "kept = keep_freed_memory() if sys.argv[1] == 'keep' else None\n"
+            "if sys.argv[1] == 'command':\n"
+            "    from neuralslicer.cli.main import main\n"
+            "    main(['slice', 'no-such-model.stl', '--out', 'never-made'])\n"
+            "a = np.ones(50_000_000)\n"
+            "print(kept, mallinfo2().hblkhd >= a.nbytes)\n")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_big_arrays_come_from_the_heap_once_freed_memory_is_kept():
+    """glibc maps every array above 32 MB afresh (and faults it in page by page on every use): with
+    ``keep_freed_memory`` (the command calls it) a 400 MB array comes from the heap (no mapped block holds it);
+    without it, and where the user set glibc's own ``MALLOC_*`` variables, it is mapped as before (mallinfo2, an
+    independent count)."""
+    def run(arg: str, **env: str) -> str:
+        base = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+        return subprocess.run([sys.executable, "-c", _MMAPPED, arg], env={**base, **env}, capture_output=True,
+                              text=True, check=True).stdout.strip()
+
+    assert run("keep") == "True False"
+    assert run("command") == "None False"           # the command keeps it, first thing
+    assert run("default") == "None True"
+    assert run("keep", MALLOC_ARENA_MAX="4") == "False True"
+    assert run("keep", NEURALSLICER_KEEP_FREED_MEMORY="0") == "False True"
+
+
 def test_studies_run_the_same_checks(tmp_path, part, capsys):
     out = tmp_path / "out"
     out.write_text("not a folder")
