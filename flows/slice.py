@@ -20,7 +20,7 @@ from neuralslicer.model.spec import ModelSpec, model_name, spec_digest
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.pipeline import FieldInputs, Printed, run_chain
 from neuralslicer.provenance import add_to_metrics, provenance
-from neuralslicer.report import embed_figures
+from neuralslicer.report_embed import embed_figures
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.flows.settings import artifact_key
 from neuralslicer.storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
@@ -57,10 +57,15 @@ GPU_TAG = "gpu"
 
 def device_tags(device: str | None) -> tuple[str, ...]:
     """The tags of a step that optimises on ``device`` (``auto``, ``cpu``, ``cuda``, ``cuda:1``; None: no
-    optimisation): ``("gpu",)`` when it resolves to CUDA."""
-    if device is None or device == "cpu":
+    optimisation): ``("gpu",)`` when it resolves to CUDA. ``auto`` imports torch only where it may have a GPU (not
+    with a CPU build of torch: a cached rerun does not import it)."""
+    from neuralslicer.neural.device import cuda_possible
+
+    if device is None or device == "cpu" or (device == "auto" and not cuda_possible()):
         return ()
-    from neuralslicer.neural.device import resolve_device   # torch: only when a field is optimised
+    if device.startswith("cuda"):
+        return (GPU_TAG,)
+    from neuralslicer.neural.device import resolve_device   # torch: only when a GPU may be there
 
     return (GPU_TAG,) if resolve_device(device).type == "cuda" else ()
 

@@ -15,7 +15,7 @@ from PIL import Image
 from conftest import fast_config
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
-from neuralslicer.report import embed_figures
+from neuralslicer.report_embed import embed_figures
 
 
 def _spec(folder: Path, part: Path, up: str) -> Path:
@@ -103,6 +103,23 @@ def test_the_field_step_takes_the_gpu_tag_on_cuda_only() -> None:
     assert GPU_TAG == "gpu"
     assert device_tags("cuda") == ("gpu",) and device_tags("cuda:1") == ("gpu",)
     assert device_tags("cpu") == () and device_tags(None) == ()
+
+
+def test_auto_resolves_without_torch_on_a_cpu_build(monkeypatch) -> None:
+    """``auto`` on a CPU build of torch (its distribution's version ends in +cpu) is the CPU, decided without importing
+    torch (a cached rerun never needs it); on another build torch decides."""
+    import sys
+
+    from neuralslicer.flows import slice as slice_flow_module
+    from neuralslicer.neural import device
+
+    monkeypatch.setattr("importlib.metadata.version", lambda name: "2.13.0+cpu")
+    monkeypatch.setitem(sys.modules, "torch", None)          # importing torch now fails
+    assert device.cuda_possible() is False and slice_flow_module.device_tags("auto") == ()
+    monkeypatch.setattr("importlib.metadata.version", lambda name: "2.13.0")
+    assert device.cuda_possible() is True
+    with pytest.raises(ImportError):
+        slice_flow_module.device_tags("auto")
 
 
 def test_the_served_deployments_keep_a_specs_up_and_carry_the_slice_schedule(tmp_path: Path) -> None:

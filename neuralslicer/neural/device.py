@@ -12,6 +12,17 @@ if TYPE_CHECKING:
 CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
 
 
+def cuda_possible() -> bool:
+    """Whether the installed torch can use a GPU at all, read from its distribution without importing it: a CPU build
+    (local version ``+cpu``) cannot; any other build may."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return not version("torch").endswith("+cpu")
+    except PackageNotFoundError:
+        return False
+
+
 def resolve_device(device: str = "auto") -> torch.device:
     """'auto' -> CUDA when available, else CPU; any other string is passed to torch.device."""
     import torch
