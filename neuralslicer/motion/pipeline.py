@@ -40,8 +40,8 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
 
     layers : build-frame layer meshes (faces along the LPD, ``vertex_attributes['lpd']``);
     platform_z : platform height; solid_H : optional implicit solid (H < 0 inside, at most 1-Lipschitz as a signed
-    distance is) used to count waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a YAML path
-    (default ``table_bc_linuxcnc``); t_max : the layers' largest thickness (default ``LayerConfig().t_max``),
+    distance is) used to count waypoints outside the solid; profile : a MachineProfile, a shipped profile name or a
+    YAML path (default ``table_bc_linuxcnc``); t_max : the layers' largest thickness (default ``LayerConfig().t_max``),
     which caps the measured bead thickness; stress : the load case's stress, for stress-following infill (whose
     widths are kept within the nozzle's bead widths). Metrics: estimated_print_time_s, toolpath_length_mm,
     n_waypoints, material_mm3, collisions, rotary statistics, timings.
