@@ -1,5 +1,11 @@
 # Two entry points: `make demo` (install + slice a bundled example) and `make test` (install + test suite).
-PYTHON ?= $(shell command -v python3.11 || command -v python3)
+# the first of python3.11, python3.12, python3.13 that runs (a pyenv shim of a version not selected is found but fails),
+# else python3; `make PYTHON=/path/to/python3.x` picks another. Only 3.11 to 3.13 are accepted (PY_OK below).
+SUPPORTED := 3.11 3.12 3.13
+ifeq ($(origin PYTHON),undefined)
+PYTHON := $(firstword $(foreach v,$(SUPPORTED),$(shell python$(v) -c 'import sys; print(sys.executable)' 2>/dev/null)) python3)
+endif
+PY_OK = $(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] in [(3, 11), (3, 12), (3, 13)] else 1)' 2>/dev/null
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -11,7 +17,7 @@ export DO_NOT_TRACK := 1
 .PHONY: install demo test test-fast bench clean
 
 $(STAMP): pyproject.toml constraints.txt
-	@command -v $(PYTHON) >/dev/null || { echo "make: $(PYTHON) not found (Python 3.11 is required; set PYTHON=...)"; exit 2; }
+	@$(PY_OK) || { echo "make: $(PYTHON) is $$($(PYTHON) -V 2>/dev/null || echo 'not found'); install Python 3.11 (or 3.12, 3.13) and run make again, or make PYTHON=/path/to/python3.11"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -c constraints.txt -e ".[dev,dask]"

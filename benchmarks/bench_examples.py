@@ -54,7 +54,14 @@ MODELS: dict[str, tuple[Path, list[str]]] = {
     "topopt_new4": (DATA / "topopt_new4.tet", ["--up", "y"]),
     "bunny": (DATA / "bunny_closed_low_res.stl", []),
     "coin": (DATA / "overhang_coin_closed_low_res.stl", []),
+    # three-axis non-planar (issue 41): slope-limited layers on a vertical head, against planar on the same printer
+    "ring-3axis": (DATA / "ring.tet", ["--up", "y", "--machine", "three_axis_reprap"]),
+    "bunny-3axis": (DATA / "bunny_closed_low_res.stl", ["--machine", "three_axis_reprap"]),
+    "bracket-3axis": (EXAMPLES / "bracket" / "model.yaml", ["--max-steps", "200", "--verify", "--machine",
+                                                            "three_axis_reprap"]),
 }
+#: the three-axis comparisons: the same model and printer with planar layers (``--objectives none``)
+THREE_AXIS = ("ring-3axis", "bunny-3axis", "bracket-3axis")
 #: the real parts whose default runs issue 30 sets targets for
 PARTS = ("bunny", "coin", "topopt_new4", "lattice", "hybrid")
 
@@ -84,6 +91,7 @@ def summary(out: Path) -> dict:
         "travels_by_clearance_plane": m.get("travel.n_travels_by_clearance_plane"),
         "wall_s_steps": {k.split(".", 1)[1]: v for k, v in m.items() if k.startswith("wall_s.")},
         "commit": m.get("provenance.code.git_commit"),
+        **{k: v for k, v in m.items() if k.startswith(("three_axis.", "fea."))},
     }
     run = out / "run.json"
     if run.is_file():

@@ -8,7 +8,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from neuralslicer.cli.machines import add_machines_parser
 from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
+from neuralslicer.cli.preview import add_preview_parser
 from neuralslicer.cli.studies import add_compare_parser, add_study_parser
 from neuralslicer.flows.local_api import LocalApi, api_serving, start_local_api
 from neuralslicer.flows.settings import cache_settings, with_api_retry
@@ -85,7 +87,19 @@ def print_summary(summary: dict[str, Any]) -> None:
     console.print(table)
     cached = sum(r["state"] == "Cached" for r in summary["tasks"])
     console.print(f"{cached}/{len(summary['tasks'])} tasks cached, {summary['wall_s']:.1f} s")
-    console.print(f"results: {summary['out_dir']}  (report.md, metrics.json, layers/, field.vtu, model.ply)")
+    console.print(f"results: {summary['out_dir']}  (metrics.json, layers/, field.vtu, model.ply)")
+    for line in result_files(Path(summary["out_dir"])):
+        console.print(line, soft_wrap=True, highlight=False)
+
+
+#: the files a slice's last lines name, in the order a user opens them
+RESULT_FILES = (("G-code", "print.gcode"), ("preview", "preview.html"), ("report", "report.md"))
+
+
+def result_files(out_dir: Path) -> list[str]:
+    """One line per result file in the output folder (``print.gcode``, ``preview.html`` where written,
+    ``report.md``): what it is and its path."""
+    return [f"{what + ':':<9}{out_dir / name}" for what, name in RESULT_FILES if (out_dir / name).is_file()]
 
 
 def cmd_fea(args: argparse.Namespace) -> int:
@@ -132,7 +146,7 @@ def add_fea_parser(sub: Any) -> None:
 def add_slice_parser(sub: Any) -> None:
     """Options of `neuralslicer slice`."""
     p = sub.add_parser("slice", help="slice a model into curved layers")
-    p.add_argument("model", help="mesh (STL/OBJ/PLY/OFF), volume mesh (.tet, meshio formats) or model spec (.yaml)")
+    p.add_argument("model", help="mesh (STL/3MF/OBJ/PLY/OFF), volume mesh (.tet, meshio formats) or model spec (.yaml)")
     add_slicing_options(p)
     p.add_argument("--cage-elements", type=int, default=None, help="target number of cage tets (default 10000)")
     p.add_argument("--init", default=None, help="initial guess: height, heat or a file of values (default height)")
@@ -226,7 +240,9 @@ def make_parser() -> ArgumentParser:
     add_fea_parser(sub)
     add_study_parser(sub)
     add_compare_parser(sub)
+    add_preview_parser(sub)
     add_serve_parser(sub)
+    add_machines_parser(sub)
     return parser
 
 

@@ -54,7 +54,7 @@ def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output fold
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device (default auto)")
     p.add_argument("--seed", type=int, default=None, help="random seed of the optimisation")
     p.add_argument("--store", default=None, help="artifact store (zarr path or fsspec URL; default OUT/store.zarr)")
-    p.add_argument("--machine", default=None, help="machine profile: table_bc_linuxcnc (default), reprap_5axis or a YAML")
+    p.add_argument("--machine", default=None, help="machine profile: a shipped name (`neuralslicer machines` lists them; default table_bc_linuxcnc) or a YAML")
     p.add_argument("--robot", action="store_true",
                    help="also write robot_waypoints.csv/.json and compas_slicer's printpoints.json")
     p.add_argument("--collision-refinements", type=int, default=None,

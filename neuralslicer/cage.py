@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from neuralslicer.errors import NeuralSlicerError
 from neuralslicer.model.grid import level_set_mesh
@@ -26,6 +26,8 @@ ENVELOPE = 0.25
 
 class CageConfig(BaseModel):
     """How the cage is built."""
+
+    model_config = ConfigDict(extra="forbid")
 
     n_elements: int = Field(10_000, ge=200, le=2_000_000, description="target number of cage tets")
     offset: float | None = Field(None, gt=0, description="offset of the cage surface from the solid, mm (default: auto)")

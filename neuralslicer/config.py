@@ -9,7 +9,7 @@ from pydantic import BaseModel, Field, ValidationError
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import CageConfig
-from neuralslicer.errors import InputError
+from neuralslicer.errors import InputError, error_key, unknown_key_message
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.neural.config import NeuralConfig
@@ -20,6 +20,8 @@ Objective = Literal["sf", "sr", "po", "gc", "ca"]
 
 class SampleConfig(BaseModel):
     """Surface samples B."""
+
+    model_config = {"extra": "forbid"}
 
     n_samples: int = Field(20_000, ge=100, description="number of surface samples B")
     k: int = Field(10, ge=2, description="nearest neighbours for area weights and the PO loss")
@@ -107,6 +109,9 @@ class SliceConfig(BaseModel):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            err = exc.errors()[0]
-            key = ".".join(str(p) for p in err["loc"])
-            raise InputError(f"{where}: {key}", err["msg"]) from None
+            errors = exc.errors()
+            unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+            err = (unknown or errors)[0]             # a union's other members only say "not a string"
+            key = error_key(cls, err["loc"])
+            msg = unknown_key_message(cls, err["loc"]) if unknown else err["msg"]
+            raise InputError(f"{where}: {key}", msg) from None

@@ -31,6 +31,9 @@ from neuralslicer.layers import Layers
 from neuralslicer.metrics import (heldout_surface_samples, layer_lpd_at, overhang_area_fraction, strength_angles,
                                   strength_satisfaction, support_angles)
 from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.preview import PREVIEW_FILE
+from neuralslicer.preview.data import PreviewData
+from neuralslicer.preview.page import write_preview
 from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
                                  plot_filament_angles, plot_layers_3d, plot_learning_curves, plot_overhang_map,
                                  plot_strain_histogram, plot_strain_maps, plot_stress_turn, plot_thickness_map)
@@ -220,6 +223,7 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics.update({f"reach.{k}": v for k, v in (run.print_metrics.get("axis_reach") or {}).items()})
     metrics.update({f"platform_turn.{k}": v for k, v in (run.print_metrics.get("axis_platform") or {}).items()})
     metrics.update({f"travel.{k}": v for k, v in (run.print_metrics.get("travel_lift") or {}).items()})
+    metrics.update({f"three_axis.{k}": v for k, v in (run.print_metrics.get("three_axis") or {}).items()})
     metrics.update({f"beads.{k}": v for k, v in (run.print_metrics.get("beads") or {}).items() if not k.startswith("hist_")})
     return metrics
 
@@ -410,7 +414,7 @@ class ExportJobs:
 
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
                   ) -> dict[str, Any]:
-    """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, figures, metrics.json and
+    """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, preview.html, figures, metrics.json and
     report.md to ``out_dir``; returns the metrics. The figures and the toolpaths' CSV and VTP are shared with a
     helper process (:class:`ExportJobs`) while this one writes the rest."""
     d = Path(out_dir)
@@ -418,6 +422,7 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     files: list[tuple[float, Job]] = [
         (1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths))),
         (0.5, lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))),
+        (1.2, lambda: _quiet(write_run_preview(d / PREVIEW_FILE, run))),
     ]
     jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
     write_ply(d / "model.ply", run.surface)
@@ -476,6 +481,14 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     write_json_atomic(d / "metrics.json", metrics)
     write_text_atomic(d / "report.md", markdown_report(f"Neural Slicer report: {run.model}", metrics, figures, sections))
     return json.loads(json.dumps(metrics, default=float))
+
+
+def write_run_preview(path: Path, run: RunResults) -> PreviewData:
+    """``preview.html`` of the run's program (beside print.gcode): its moves by forward kinematics, bead widths and
+    the printed program's collisions; the decimated moves it draws."""
+    hits = run.collision_maps.get("printed")
+    collided = np.flatnonzero(hits[1]) if hits is not None else np.zeros(0, np.int64)
+    return write_preview(path, run.program, run.toolpaths.width, collided, run.model, run.print_metrics)
 
 
 def _quiet(_: Any) -> dict[str, str]:

@@ -153,7 +153,8 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
     fea = steps.fea(model) if config.needs_fea(spec) else None
     stress = steps.stress_samples(model, fea) if "sr" in objectives else None
     machine, toolpath = load_profile(config.machine), config.toolpath_for(spec)
-    neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width, toolpath.collision_tilt_deg)
+    neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width, toolpath.collision_tilt_deg
+                                     ).with_tilt_bound(machine.printing_direction_bound_deg())
     printer = Printer(steps, FieldInputs(model, cage, samples, stress, user), config.layers, toolpath, machine,
                       fea if toolpath.infill == "stress" else None)
     outputs, attempts, kept = run_policy(CollisionPolicy.for_config(config, neural, objectives), printer.attempt)

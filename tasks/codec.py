@@ -136,6 +136,11 @@ def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
     return arrays["toolpaths/xyz"], hit
 
 
+def read_collided(ref: ArtifactRef) -> np.ndarray:
+    """Toolpath waypoint indices (c,) whose head collides in a stored print (``CollisionReport.indices``)."""
+    return np.asarray(read(ref, ["collisions/indices"])[0]["collisions/indices"], np.int64)
+
+
 def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
     """(hits (k,3), witnesses (k,3)) of a stored print (:func:`part_collisions`; NaN witnesses where the print
     predates stored locations)."""

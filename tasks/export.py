@@ -18,7 +18,7 @@ def _export_current(out: ArtifactRef, params: dict[str, Any]) -> bool:
     return stamp.is_file() and stamp.read_text().strip() == out.digest and Path(params["out_dir"], "metrics.json").is_file()
 
 
-@pipeline_task("export", version="7", exclude=(), valid=_export_current)
+@pipeline_task("export", version="8", exclude=(), valid=_export_current)
 def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, surface: ArtifactRef,
                 samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, layers: ArtifactRef,
                 motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,

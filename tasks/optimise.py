@@ -14,7 +14,7 @@ from neuralslicer.storage import ArtifactRef, ArtifactStore
 from neuralslicer.tasks.progress import Progress, say
 
 KEEP_CHECKPOINTS = 2
-PROGRESS_TERMS = ("total", "sf", "po", "sr", "gc", "lr", "overhang", "overhang_target", "head_hits")
+PROGRESS_TERMS = ("total", "sf", "po", "sr", "gc", "tb", "lr", "overhang", "overhang_target", "head_hits")
 
 
 class StoreCheckpoints:

@@ -37,10 +37,16 @@ def states(out: Path) -> dict[str, str]:
     return {r["task"]: r["state"] for r in json.loads((out / "run.json").read_text())["tasks"]}
 
 
-def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part):
+def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part, capsys):
     cfg = write_config(tmp_path / "cfg.yaml")
     out = tmp_path / "run"
     assert main(slice_cmd(small_part, out, cfg, "--objectives", "none")) == 0
+    # the last lines name the files a user opens, with their paths (a preview where one was written)
+    last = capsys.readouterr().out.strip().splitlines()[-3:]
+    named = [line.split()[-1] for line in last if line.split()[-1].endswith(("print.gcode", "preview.html",
+                                                                             "report.md"))]
+    assert named[0] == str(out.resolve() / "print.gcode") and named[-1] == str(out.resolve() / "report.md")
+    assert len(named) == (3 if (out / "preview.html").is_file() else 2)
     first = states(out)
     assert set(first.values()) == {"Completed"}
     for name in ("model.ply", "field.vtu", "metrics.json", "report.md", "samples_B.ply", "print.gcode",

@@ -449,3 +449,120 @@ def test_the_linuxcnc_header_carries_the_same_totals(tmp_path, curved):
     rhead = reprap.read_text().split("G21", 1)[0]
     assert re.search(r";LAYER_COUNT:(\d+)", rhead).group(1) == str(n_layers)
     assert float(re.search(r"; filament used \[mm\] = ([\d.]+)", rhead).group(1)) == pytest.approx(filament, abs=0.01)
+
+
+def test_the_reprap_file_ends_with_prusaslicers_totals(tmp_path, curved):
+    """PrusaSlicer's totals block (what PrusaSlicer, PrusaLink and Moonraker read at the end of a file) after the
+    last command, in PrusaSlicer's order, equal to what the file holds and to the header's keys."""
+    tp, _, _ = curved
+    profile = load_profile("reprap_5axis")
+    program = plan_motion(tp, profile, platform_z=0.0)
+    path = write_gcode(tmp_path / "print.gcode", program)
+    found = header_totals(path, program, profile, ";", "", r"^;LAYER:", r" \(normal mode\)")
+    lines = path.read_text().splitlines()
+    tail = lines[lines.index("M84") + 1:]
+    keys = [re.match(r"; ([^=]+) = (.+)$", ln).groups() for ln in tail]
+    assert [k for k, _ in keys] == ["filament used [mm]", "filament used [cm3]", "filament used [g]",
+                                    "total filament used [g]", "total layers count",
+                                    "estimated printing time (normal mode)"]
+    value = dict(keys)
+    filament = found["filament"]                                  # E read back from the moves
+    assert float(value["filament used [mm]"]) == pytest.approx(filament, abs=0.01)
+    area = np.pi * 0.25 * profile.extrusion.filament_diameter ** 2
+    assert float(value["filament used [cm3]"]) == pytest.approx(filament * area / 1000, abs=0.01)
+    assert float(value["filament used [g]"]) == float(value["total filament used [g]"]) == pytest.approx(
+        filament * area * 1.24e-3, abs=0.01)
+    assert int(value["total layers count"]) == found["n_layers"]
+    head_time = re.search(r"^; estimated printing time \(normal mode\) = (.+)$", found["head"], re.M).group(1)
+    assert value["estimated printing time (normal mode)"] == head_time
+
+
+def _thumbnails(text: str) -> list[tuple[int, int, int, str]]:
+    """(width, height, stated length, base64 text) of every PrusaSlicer thumbnail block, read line by line."""
+    out, block = [], None
+    for ln in text.splitlines():
+        if m := re.fullmatch(r"; thumbnail begin (\d+)x(\d+) (\d+)", ln):
+            block = [int(m[1]), int(m[2]), int(m[3]), ""]
+        elif ln == "; thumbnail end":
+            out.append(tuple(block))
+            block = None
+        elif block is not None:
+            assert ln.startswith("; ") and len(ln) <= 80
+            block[3] += ln[2:]
+    assert block is None
+    return out
+
+
+def test_the_reprap_file_carries_prusaslicer_thumbnails_of_the_part(tmp_path, curved):
+    import base64
+    import io
+
+    from PIL import Image
+
+    tp, _, _ = curved
+    program = plan_motion(tp, load_profile("reprap_5axis"), platform_z=0.0)
+    text = write_gcode(tmp_path / "print.gcode", program).read_text()
+    thumbs = _thumbnails(text)
+    assert [(w, h) for w, h, _, _ in thumbs] == [(32, 32), (220, 124)]
+    assert text.index("; thumbnail begin") < text.index(";LAYER:0")     # in the header, before any move
+    for w, h, n, data in thumbs:
+        assert n == len(data)
+        image = Image.open(io.BytesIO(base64.b64decode(data, validate=True)))
+        assert image.format == "PNG" and image.size == (w, h) and image.mode == "RGBA"
+        alpha = np.asarray(image)[:, :, 3]
+        rows, cols = np.flatnonzero(alpha.any(axis=1)), np.flatnonzero(alpha.any(axis=0))
+        # the part fills the picture in one direction (centred, margins of one pixel) and not all of it
+        assert 0.02 < (alpha > 0).mean() < 0.9
+        assert cols[-1] - cols[0] >= w - 3 or rows[-1] - rows[0] >= h - 3
+    # an empty program still gives valid, empty pictures
+    from neuralslicer.gcode.writers import thumbnail_png
+    still = _nothing_printed(program)
+    assert Image.open(io.BytesIO(thumbnail_png(still, 16, 8))).size == (16, 8)
+
+
+def _nothing_printed(program: MachineProgram) -> MachineProgram:
+    """The program with every move a travel (nothing printed)."""
+    import dataclasses
+
+    return dataclasses.replace(program, kind=np.zeros_like(program.kind))
+
+
+@pytest.mark.parametrize("fan_percent", [None, 40.0])
+def test_fan_turns_on_at_the_second_layer_and_off_at_the_end(tmp_path, curved, fan_percent):
+    tp, _, _ = curved
+    profile = load_profile("reprap_5axis").model_copy(deep=True)
+    profile.gcode.fan_percent = fan_percent
+    lines = write_gcode(tmp_path / "print.gcode", plan_motion(tp, profile, platform_z=0.0)).read_text().splitlines()
+    on = [i for i, ln in enumerate(lines) if ln.startswith("M106")]
+    off = [i for i, ln in enumerate(lines) if ln.startswith("M107")]
+    if fan_percent is None:
+        assert on == off == []
+        return
+    assert [lines[i] for i in on] == ["M106 S102"] and len(off) == 1          # 40 % of 255
+    moves = [i for i, ln in enumerate(lines) if ln.startswith(("G0 ", "G1 "))]
+    second = lines.index(";LAYER:1")
+    # after the second layer's mark and before its first move; off after the last move
+    assert second < on[0] < min(i for i in moves if i > second) and off[0] > moves[-1]
+    with pytest.raises(ValueError):
+        profile.model_validate({**profile.model_dump(), "gcode": {**profile.gcode.model_dump(), "fan_percent": 120}})
+
+
+def test_feature_tags_name_shells_and_infill(tmp_path):
+    """;TYPE: lines (PrusaSlicer's names) before each printing run of another feature: one per change of the
+    toolpaths' path kind along the printed waypoints, each followed by an extruding move, none in LinuxCNC output."""
+    layers = planar_stack(3, size=12.0, n=9)
+    profile = load_profile("reprap_5axis")
+    tp, prog, _, _ = plan_print(layers, platform_z=0.0, profile=profile)
+    kinds = tp.attrs["path_kinds"]
+    assert len(kinds) == tp.attrs["n_paths"] and set(kinds) == {"0", "1"}        # shells and zig-zag infill
+    names = {"0": "Perimeter", "1": "Internal infill", "2": "Internal infill"}
+    printed = tp.extrude & (tp.path >= 0)
+    label = [names[kinds[p]] for p in tp.path[printed]]
+    expected = [label[0]] + [b for a, b in zip(label[:-1], label[1:]) if a != b]
+    lines = write_gcode(tmp_path / "p.gcode", prog).read_text().splitlines()
+    tags = [i for i, ln in enumerate(lines) if ln.startswith(";TYPE:")]
+    assert [lines[i][6:] for i in tags] == expected
+    for i in tags:
+        assert lines[i + 1].startswith("G1") and " E" in lines[i + 1]
+    linuxcnc = plan_print(layers, platform_z=0.0)[1]
+    assert ";TYPE:" not in write_gcode(tmp_path / "p.ngc", linuxcnc).read_text()

@@ -156,3 +156,62 @@ def test_no_tracked_file_names_a_machine_path_or_the_shared_data_folder() -> Non
         bad += [f"{name}:{i}" for i, line in enumerate(data.decode(errors="replace").splitlines(), 1)
                 if any(p in line for p in patterns)]
     assert not bad, bad
+
+
+def _with_unit(src: Path, dst: Path, unit: str) -> Path:
+    """A copy of a 3MF whose model part declares ``unit``."""
+    import zipfile
+
+    with zipfile.ZipFile(src) as a, zipfile.ZipFile(dst, "w") as b:
+        for item in a.infolist():
+            data = a.read(item.filename)
+            if item.filename.endswith(".model"):
+                data = data.replace(b'unit="millimeter"', f'unit="{unit}"'.encode(), 1)
+            b.writestr(item, data)
+    return dst
+
+
+def test_3mf_written_by_trimesh_reads_as_the_stl_placed_by_its_build_item(tmp_path: Path) -> None:
+    import trimesh
+
+    from neuralslicer.model.io import read_surface, threemf_units
+    from neuralslicer.model.spec import load_model
+
+    stl = DATA_DIR / "bunny_closed_low_res.stl"
+    mesh = trimesh.load(stl)
+    scene = trimesh.Scene()
+    scene.add_geometry(mesh, transform=trimesh.transformations.translation_matrix([100.0, -20.0, 5.0]))
+    path = tmp_path / "bracket.3mf"
+    scene.export(path)
+    V, F = read_surface(path)
+    V0, F0 = read_surface(stl)
+    # the same triangles, moved by the build item's transform (a 3MF places every item in the build frame)
+    assert V.dtype == np.float64 and F.dtype == np.int64 and len(F) == len(F0) > 100
+    assert np.allclose(np.sort(V0 + [100.0, -20.0, 5.0], axis=0), np.sort(V, axis=0))
+    assert trimesh.Trimesh(V, F).volume == pytest.approx(mesh.volume, rel=1e-9)
+    # the CLI's path: a mesh component in the file's own unit
+    spec = load_model(path)
+    assert spec.components[0].type == "mesh" and spec.units == "mm" == threemf_units(path)
+    solid = implicit_solid(spec)
+    assert solid.volume() == pytest.approx(mesh.volume, rel=0.02)
+    assert np.allclose(solid.surface().bounds, mesh.bounds + [100.0, -20.0, 5.0], atol=0.5)
+
+
+def test_3mf_unit_comes_from_the_file(tmp_path: Path) -> None:
+    import trimesh
+
+    from neuralslicer.model.spec import load_model
+
+    path = tmp_path / "box.3mf"
+    trimesh.creation.box(extents=[2.0, 1.0, 0.5]).export(path)
+    inch = _with_unit(path, tmp_path / "box_in.3mf", "inch")
+    assert load_model(inch).units == "in" and load_model(inch, units="in").units == "in"
+    assert implicit_solid(load_model(inch)).volume() == pytest.approx(2.0 * 1.0 * 0.5 * 25.4 ** 3, rel=0.02)
+    with pytest.raises(InputError, match="states its unit, in"):
+        load_model(inch, units="mm")
+    with pytest.raises(InputError, match="micron"):
+        load_model(_with_unit(path, tmp_path / "box_um.3mf", "micron"))
+    not_zip = tmp_path / "broken.3mf"
+    not_zip.write_bytes(b"solid nothing\nendsolid\n")
+    with pytest.raises(InputError, match="not a 3MF file"):
+        load_model(not_zip)

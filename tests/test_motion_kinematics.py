@@ -18,7 +18,7 @@ def _angle_deg(a, b):
 
 def test_ik_fk_round_trip_random():
     rng = np.random.default_rng(1)
-    kin = Kinematics(pivot=(12.0, -3.0, 40.0), c_offset=(0.5, -1.0, 7.0), b_min_deg=-180, b_max_deg=180)
+    kin = Kinematics(pivot=(12.0, -3.0, 40.0), c_offset=(0.5, -1.0, 7.0), tilt_min_deg=-180, tilt_max_deg=180)
     a = rng.normal(size=(500, 3))
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     p = rng.uniform(-30, 30, size=(500, 3))
@@ -68,10 +68,10 @@ def test_c_is_unwrapped_over_many_turns():
 
 def test_b_limits_pick_the_other_branch():
     a = np.array([[np.sin(1.2), 0, np.cos(1.2)]])                   # 68.8 deg tilt
-    kin = Kinematics(b_min_deg=-90.0, b_max_deg=10.0)
+    kin = Kinematics(tilt_min_deg=-90.0, tilt_max_deg=10.0)
     b, c, _, out = inverse_kinematics(a, kin)
     assert b[0] < 0 and not out.any()
-    kin = Kinematics(b_min_deg=-10.0, b_max_deg=10.0)
+    kin = Kinematics(tilt_min_deg=-10.0, tilt_max_deg=10.0)
     _, _, _, out = inverse_kinematics(a, kin)
     assert out.all()
 
@@ -123,10 +123,10 @@ def test_kinematics_in_blocks_equal_one_block(monkeypatch):
     import neuralslicer.motion.kinematics as K
     from neuralslicer.motion.kinematics import tool_axis
     rng = np.random.default_rng(4)
-    kin = Kinematics(pivot=(12.0, -3.0, 40.0), c_offset=(0.5, -1.0, 7.0), b_min_deg=-180, b_max_deg=180)
+    kin = Kinematics(pivot=(12.0, -3.0, 40.0), c_offset=(0.5, -1.0, 7.0), tilt_min_deg=-180, tilt_max_deg=180)
     p, off = rng.uniform(-30, 30, size=(1000, 3)), np.array([1.0, 2.0, -3.0])
     b, c = rng.uniform(-90, 90, 1000), rng.uniform(-720, 720, 1000)
-    whole = machine_position(p, b, c, kin, off), forward_kinematics(p, b, c, kin, off), tool_axis(b, c)
+    whole = machine_position(p, b, c, kin, off), forward_kinematics(p, b, c, kin, off), tool_axis(b, c, kin)
     monkeypatch.setattr(K, "ROWS_PER_BLOCK", 7)
     out = np.zeros((1000, 5))
     machine_position(p, b, c, kin, off, out=out[:, :3])
@@ -134,7 +134,7 @@ def test_kinematics_in_blocks_equal_one_block(monkeypatch):
     fk = forward_kinematics(p, b, c, kin, off)
     assert np.array_equal(fk[0], whole[1][0]) and np.array_equal(fk[1], whole[1][1])
     # the tool axis alone is forward kinematics' axis, and that is R_z(-C) R_y(-B) +Z
-    assert np.array_equal(tool_axis(b, c), whole[2]) and np.array_equal(whole[2], whole[1][1])
+    assert np.array_equal(tool_axis(b, c, kin), whole[2]) and np.array_equal(whole[2], whole[1][1])
     br, cr = np.radians(b), np.radians(c)
     assert np.allclose(whole[2], np.c_[-np.cos(cr) * np.sin(br), np.sin(cr) * np.sin(br), np.cos(br)], atol=1e-15)
 

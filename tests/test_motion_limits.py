@@ -37,7 +37,7 @@ def _winding_paths(n_paths: int = 3, turns: float = 4.0, polar_deg: float = 30.0
 
 def _limited(c_lo: float | None, c_hi: float | None):
     profile = load_profile("table_bc_linuxcnc").model_copy(deep=True)
-    profile.kinematics.c_min_deg, profile.kinematics.c_max_deg = c_lo, c_hi
+    profile.kinematics.rotate_min_deg, profile.kinematics.rotate_max_deg = c_lo, c_hi
     profile.kinematics.pivot = (0.0, 0.0, 40.0)
     return profile
 
@@ -60,6 +60,27 @@ def test_c_turns_unwind_inside_a_path_that_spans_more_than_the_range():
     out = c + 360 * turns
     assert out.min() >= -360 and out.max() <= 360
     assert np.count_nonzero(np.diff(turns)) == 2   # 2000 deg from the bottom of a 720 deg range: two unwinds (of 2 turns)
+
+
+def test_the_pose_turned_at_fits_the_new_count():
+    """Where the count changes the axis turns at the move before: with the path's first move or an unwinding move
+    just inside the range's far end, that pose (one step short of it) must fit the new count too (the 200 mm bunny
+    on a head with C in +-720 deg put 21 turned poses 0.3-1.5 deg outside before)."""
+    # a path rising through the top of [-360, 360]: the unwind at 361 would turn the pose at 359.5 to -0.5 - 360
+    c = np.r_[np.linspace(0.0, 359.5, 240), np.linspace(361.0, 1100.0, 300)]
+    kind = np.r_[TRAVEL, np.full(len(c) - 1, PRINT)]
+    turns = c_turns(c, kind, -360.0, 360.0)
+    change = np.flatnonzero(np.diff(turns)) + 1
+    assert len(change) and ((c + 360 * turns >= -360) & (c + 360 * turns <= 360)).all()
+    turned_at = c[change - 1] + 360 * turns[change]
+    assert ((turned_at >= -360) & (turned_at <= 360)).all()
+    # a new path whose count must change, the travel's first move 1.5 deg from the previous pose
+    c2 = np.array([0.0, 200.0, 359.0, 360.5, 500.0, 800.0])
+    kind2 = np.array([TRAVEL, PRINT, PRINT, TRAVEL, PRINT, PRINT])
+    t2 = c_turns(c2, kind2, -360.0, 360.0)
+    at = np.flatnonzero(np.diff(t2)) + 1
+    assert ((c2 + 360 * t2 >= -360) & (c2 + 360 * t2 <= 360)).all()
+    assert len(at) and ((c2[at - 1] + 360 * t2[at] >= -360) & (c2[at - 1] + 360 * t2[at] <= 360)).all()
 
 
 def test_c_is_unwound_into_a_configured_range_at_a_safe_height(tmp_path):
@@ -105,14 +126,14 @@ def test_c_range_narrower_than_a_turn_is_refused():
     from neuralslicer.errors import InputError
     from neuralslicer.motion.profile import _validate
 
-    with pytest.raises(InputError, match="C range must span at least 360"):
-        _validate({"kinematics": {"c_min_deg": -90.0, "c_max_deg": 90.0}}, "narrow.yaml")
+    with pytest.raises(InputError, match="rotary range must span at least 360"):
+        _validate({"kinematics": {"rotate_min_deg": -90.0, "rotate_max_deg": 90.0}}, "narrow.yaml")
 
 
 def test_no_pose_outside_a_narrow_b_range_is_written(tmp_path):
     layers = cap_stack(3, r0=8.0, theta_max_deg=60.0, center=(0.0, 0.0, 0.0), subdivisions=4)
     profile = load_profile("table_bc_linuxcnc").model_copy(deep=True)
-    profile.kinematics.b_min_deg, profile.kinematics.b_max_deg = -20.0, 20.0
+    profile.kinematics.tilt_min_deg, profile.kinematics.tilt_max_deg = -20.0, 20.0
     tp, prog, metrics, _ = plan_print(layers, platform_z=0.0, profile=profile)
     assert (np.abs(prog.machine[:, 3]) <= 20.0 + 1e-9).all()
     assert metrics["axis_reach"]["n_clamped"] > 0 and metrics["axis_reach"]["n_beyond_tilt_bound"] > 0
@@ -121,7 +142,7 @@ def test_no_pose_outside_a_narrow_b_range_is_written(tmp_path):
     assert np.abs(moves.axes["B"]).max() <= 20.0 + 1e-4
     # the plan refuses instead when asked to, naming the layers
     profile.kinematics.beyond_reach = "fail"
-    with pytest.raises(PlanError, match=r"beyond the machine's B reach \(20 deg.*in layers"):
+    with pytest.raises(PlanError, match=r"beyond the machine's reach \(20 deg.*in layers"):
         plan_print(layers, platform_z=0.0, profile=profile)
     # and plan_motion on its own never writes an unreachable pose
     with pytest.raises(PlanError, match="outside the machine's range"):

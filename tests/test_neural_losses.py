@@ -110,3 +110,44 @@ def test_crease_is_zero_for_planar_layers_on_a_grid():
     assert np.abs(x.numpy()).max() < 1e-12 and np.allclose(c.numpy(), 1)
     ca = L.collision_loss(grad, torch.tensor(geo.pairs), torch.tensor(geo.pair_normals), math.radians(170))
     assert float(ca) == 0
+
+
+def test_tilt_bound_loss_against_hand_computed_values():
+    """L_TB = sum w relu((cos b - d_z) / (1 - cos b))^2 / sum w, directions normalised inside."""
+    c = math.sqrt(3.0) / 2.0   # cos 30 deg
+    a = math.radians(40.0)
+    directions = torch.tensor([[0.0, 0.0, 3.0],                    # +z: inside, 0
+                               [math.sin(a), 0.0, math.cos(a)],    # 40 deg: 10 deg beyond the bound
+                               [0.0, -5.0, 0.0],                   # horizontal: d_z = 0
+                               [0.0, 0.0, -2.0],                   # straight down: d_z = -1
+                               [0.4, 0.0, 1.0]], dtype=torch.float64)  # 21.8 deg: inside, 0
+    w = torch.tensor([1.0, 2.0, 0.5, 0.25, 4.0], dtype=torch.float64)
+    e40 = (c - math.cos(a)) / (1.0 - c)
+    e90 = c / (1.0 - c)
+    e180 = (c + 1.0) / (1.0 - c)
+    ref = (2.0 * e40 ** 2 + 0.5 * e90 ** 2 + 0.25 * e180 ** 2) / 7.75
+    got = L.tilt_bound_loss(directions, w, math.radians(30.0))
+    assert abs(float(got) - ref) < 1e-12 * ref
+    # the excess is the same with any lengths of the vectors, zero inside the bound
+    ex = L.tilt_excess(directions, math.radians(30.0)).numpy()
+    np.testing.assert_allclose(ex, [c - 1.0, c - math.cos(a), c, c + 1.0, c - 1.0 / math.sqrt(1.16)], atol=1e-15)
+    assert float(L.tilt_bound_loss(directions[[0, 4]], w[[0, 4]], math.radians(30.0))) == 0.0
+    assert float(L.tilt_bound_loss(torch.zeros((0, 3), dtype=torch.float64), w[:0], 0.5)) == 0.0
+
+
+def test_tilt_bound_loss_gradient_matches_finite_differences():
+    rng = np.random.default_rng(11)
+    v = rng.normal(size=(40, 3))
+    v[:, 2] += 0.8   # some inside the bound, some beyond it
+    angles = np.degrees(np.arccos(v[:, 2] / np.linalg.norm(v, axis=1)))
+    assert (angles < 30).sum() > 3 and (angles > 30).sum() > 3 and np.abs(angles - 30).min() > 1e-3
+    w = torch.tensor(rng.uniform(0.1, 2.0, 40))
+    x = torch.tensor(v, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda d: L.tilt_bound_loss(d, w, math.radians(30.0)), (x,), eps=1e-6,
+                                    atol=1e-8, rtol=1e-5)
+    # the gradient pulls every violating direction toward +z and leaves the others alone
+    L.tilt_bound_loss(x, w, math.radians(30.0)).backward()
+    g = x.grad.numpy()
+    assert np.all(g[angles < 30] == 0.0)
+    tangential_z = g[:, 2] - (g * v).sum(1) * v[:, 2] / (v * v).sum(1)   # the component that changes d_z
+    assert np.all(tangential_z[angles > 30] < 0)

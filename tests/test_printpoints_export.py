@@ -83,8 +83,7 @@ def test_printpoints_file_has_compas_slicers_nesting_and_fields(printed):
         for key in ("velocity", "wait_time", "blend_radius", "layer_height"):
             assert _is_number(pp[key]) and pp[key] >= 0
         assert pp["layer_height"] > 0 and pp["velocity"] > 0
-        assert pp["closest_support_pt"] is None or _is_vec3(pp["closest_support_pt"])
-        assert (pp["distance_to_support"] is None) == (pp["closest_support_pt"] is None)
+        assert _is_vec3(pp["closest_support_pt"])      # compas_slicer 0.7 reads it with Point.from_data
         assert pp["distance_to_support"] is None or _is_number(pp["distance_to_support"])
         assert isinstance(pp["attributes"], dict)
     assert json.loads(json.dumps(data)) == data
@@ -114,7 +113,9 @@ def test_printpoints_match_the_waypoints_and_the_gcode(printed):
     support = np.array([pp["closest_support_pt"] for (_, _, pp), o in zip(flat, on) if o])
     dist = np.array([pp["distance_to_support"] for (_, _, pp), o in zip(flat, on) if o])
     assert np.allclose(support, point[on] - dist[:, None] * up[on], atol=1e-5) and np.allclose(dist, tp.thickness[on])
-    assert all(pp["closest_support_pt"] is None for (_, _, pp), o in zip(flat, on) if not o)
+    # no material below (lifted travels): the point itself, distance null
+    assert not on.all() and all(pp["closest_support_pt"] == pp["point"] and pp["distance_to_support"] is None
+                                for (_, _, pp), o in zip(flat, on) if not o)
     # the extruder is on for the move leaving a point: exactly the moves that deposit; the last point is off
     toggle = np.array([pp["extruder_toggle"] for _, _, pp in flat])
     assert np.array_equal(toggle[:-1], tp.extrude[1:]) and not toggle[-1]
@@ -165,3 +166,63 @@ def test_colliding_waypoints_are_not_feasible(printed):
     feasible = [pp["is_feasible"] for _, doc in printpoint_layers(hit, prog.profile) for pts in doc.values()
                 for pp in pts.values()]
     assert [i for i, ok in enumerate(feasible) if not ok] == [3, 17]
+
+
+#: compas_slicer 0.7.0's requirements (its METADATA) but pyclipper: its pin <1.3 has no wheel for Python >= 3.11
+#: and its sdist no longer builds there (longintrepr.h moved); PrintPoint never uses it, the package imports it
+COMPAS_SLICER_070_DEPS = ["attrs>=19.2.0", "compas>=1.16.0,<2.0.0", "networkx>=2.5,<3.2", "numpy<=1.23.2",
+                          "progressbar2>=3.53,<4.4", "rdp==0.8", "libigl>=2.4.1,<2.5.0", "pyclipper"]
+
+#: run in the compas_slicer 0.7.0 venv: every printpoint of a file through PrintPoint.from_data, in file order
+LOAD_WITH_COMPAS_SLICER = """
+import json, sys
+import compas_slicer
+from compas_slicer.geometry import PrintPoint
+data = json.load(open(sys.argv[1]))
+points, failed = [], []
+for i in range(len(data)):
+    layer = data["layer_%d" % i]
+    for j in range(len(layer)):
+        path = layer["path_%d" % j]
+        for k in range(len(path)):
+            try:
+                pp = PrintPoint.from_data(path[str(k)])
+            except Exception as exc:
+                failed.append("layer_%d/path_%d/%d: %s: %s" % (i, j, k, type(exc).__name__, exc))
+                continue
+            points.append(list(pp.pt) + list(pp.closest_support_pt) + [pp.layer_height])
+print(json.dumps({"version": compas_slicer.__version__, "points": points, "failed": failed[:5],
+                  "n_failed": len(failed)}))
+"""
+
+
+@pytest.mark.slow
+def test_every_printpoint_loads_with_compas_slicer_0_7_0(printed, tmp_path):
+    """The released compas_slicer 0.7.0, in a throwaway venv, loads every point of the file (it reads
+    ``closest_support_pt`` with ``Point.from_data`` unconditionally: a null raised a TypeError there)."""
+    import subprocess
+    import sys
+
+    tp, _, files = printed
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, capture_output=True)
+    pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet", "--disable-pip-version-check"]
+    for args in (["--no-deps", "compas_slicer==0.7.0"], COMPAS_SLICER_070_DEPS):
+        done = subprocess.run(pip + args, capture_output=True, text=True, timeout=900)
+        if done.returncode != 0:
+            pytest.skip(f"pip cannot install compas_slicer 0.7.0 here: {(done.stderr or done.stdout).strip()[-300:]}")
+    script = tmp_path / "load.py"
+    script.write_text(LOAD_WITH_COMPAS_SLICER)
+    done = subprocess.run([str(venv / "bin" / "python"), str(script), str(files["printpoints"])],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout)
+    assert result["version"] == "0.7.0"
+    assert result["n_failed"] == 0, result["failed"]
+    loaded = np.array(result["points"])
+    # every waypoint, in print order, where it is; supports on the layer below, travels their own support
+    assert len(loaded) == len(tp) and np.abs(loaded[:, :3] - tp.xyz).max() <= 1e-6
+    on = (tp.path >= 0) & (tp.thickness > 0)
+    assert not on.all() and np.abs(loaded[~on, 3:6] - tp.xyz[~on]).max() <= 1e-6
+    assert np.allclose(np.linalg.norm(loaded[on, :3] - loaded[on, 3:6], axis=1), tp.thickness[on], atol=1e-5)
+    assert (loaded[:, 6] > 0).all()

@@ -40,7 +40,7 @@ def parse_gcode(source: str | Path, axes: str = "XYZABCUVWE") -> ParsedMoves:
     out_axes: dict[str, list] = {a: [] for a in axes}
     out_f, out_m, out_i, out_l = [], [], [], []
     for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = _PAREN.sub(" ", raw.split(";", 1)[0]).strip()
+        line = _PAREN.sub(" ", raw).split(";", 1)[0].strip()     # a ';' inside ( ) is comment text
         if not line or line == "%":
             continue
         words = [(w.upper(), float(v)) for w, v in _WORD.findall(line)]

@@ -68,7 +68,13 @@ def _round(a: np.ndarray, decimals: int) -> list:
 
 def printpoint_columns(tp: Toolpaths, profile: MachineProfile | None = None) -> dict[str, list]:
     """Every printpoint field as a list over the waypoints (JSON-ready values; ``profile``: speeds, waits,
-    filament; default profile otherwise)."""
+    filament; default profile otherwise).
+
+    ``closest_support_pt`` is the point of the layer below along the tool axis (``point - thickness * up``) on
+    a layer; at points without material below (lifted travels) it is the point itself, since compas_slicer 0.7's
+    ``PrintPoint.from_data`` reads it with ``Point.from_data`` unconditionally (null raises a TypeError there);
+    their ``distance_to_support`` stays null, which marks them.
+    """
     profile = profile or MachineProfile()
     frames = tool_frames(tp.axis, tp.xyz, tp.extrude)
     up = -frames[:, :, 2]                                                 # the unit tool axis (LPD)
@@ -92,7 +98,7 @@ def printpoint_columns(tp: Toolpaths, profile: MachineProfile | None = None) -> 
         "velocity": _round(velocities(tp, profile), POINT_DECIMALS),
         "wait_time": _round(wait, POINT_DECIMALS),
         "blend_radius": _round(blend_radii(tp, wait), POINT_DECIMALS),
-        "closest_support_pt": [p if ok else None for p, ok in zip(_round(support, POINT_DECIMALS), on)],
+        "closest_support_pt": _round(np.where(on_layer[:, None], support, tp.xyz), POINT_DECIMALS),
         "distance_to_support": [d if ok else None for d, ok in zip(_round(tp.thickness, POINT_DECIMALS), on)],
         "is_feasible": (~infeasible).tolist(),
         "layer": tp.layer.tolist(), "path": tp.path.tolist(), "extrude": tp.extrude.tolist(),

@@ -6,7 +6,7 @@ from typing import Iterator
 
 import numpy as np
 
-from neuralslicer.motion.planning import TRAVEL, MachineProgram, filament_area, program_metrics
+from neuralslicer.motion.planning import FEATURE_NAMES, TRAVEL, MachineProgram, filament_area, program_metrics
 from neuralslicer.motion.timing import schedule
 from neuralslicer.fileio import atomic_path
 
@@ -105,13 +105,15 @@ def _axis_columns(program: MachineProgram, start: int, stop: int) -> list[_Words
     lx, ly, lz, lb, lc, le = program.axis_letters
     lo = max(start - 1, 0)
     m = program.machine[lo:stop]
+    xyz = program.program_xyz(lo, stop)
     first = np.zeros(len(m), bool)
     first[0] = start == 0
     cols = []
-    for j, (letter, dec) in enumerate([(lx, g.decimals_linear), (ly, g.decimals_linear),
-                                       (lz, g.decimals_linear), (lb, g.decimals_rotary),
-                                       (lc, g.decimals_rotary)]):
-        cols.append(_Words.modal(letter, fixed_point(m[:, j], dec), dec, always=first))
+    for j, (letter, dec) in enumerate([(lx, g.decimals_linear), (ly, g.decimals_linear), (lz, g.decimals_linear)]):
+        cols.append(_Words.modal(letter, fixed_point(xyz[:, j], dec), dec, always=first))
+    if program.profile.kinematics.rotary:
+        for j, letter in ((3, lb), (4, lc)):
+            cols.append(_Words.modal(letter, fixed_point(m[:, j], g.decimals_rotary), g.decimals_rotary, always=first))
     cols.append(_Words.modal(le, fixed_point(program.extruder[lo:stop], g.decimals_extruder), g.decimals_extruder,
                              always=first))
     return [c[start - lo:] for c in cols]
@@ -153,26 +155,54 @@ def _layer_comment(info: dict) -> str:
 
 def _machine_comment(program: MachineProgram) -> list[str]:
     """The kinematic set-up the program was computed for (what the operator must match on the machine)."""
-    k = program.profile.kinematics
+    prof = program.profile
+    k = prof.kinematics
+    _, _, _, lt, lr, _ = program.axis_letters
     v = lambda t: " ".join(f"{x:.4f}" for x in t)  # noqa: E731
-    c_span = ("unlimited" if k.c_min_deg is None and k.c_max_deg is None
-              else f"{k.c_min_deg if k.c_min_deg is not None else '-inf'}..{k.c_max_deg if k.c_max_deg is not None else 'inf'}")
-    b_lo, b_hi = program.attrs.get("b_range_deg", (0.0, 0.0))
-    c_lo, c_hi = program.attrs.get("c_range_deg", (0.0, 0.0))
-    return [f"machine: {program.profile.name}, table B/C, tool tip at the pivot = machine {v(k.pivot)} mm",
-            f"machine: C axis on the table at pivot + {v(k.c_offset)} mm at B = 0; B range {k.b_min_deg:g}..{k.b_max_deg:g} deg, "
-            f"C range {c_span} deg",
-            f"machine: program B {b_lo:.2f}..{b_hi:.2f} deg, C {c_lo:.2f}..{c_hi:.2f} deg"]
+    if not k.rotary:
+        return [f"machine: {prof.name}, three-axis, XYZ = tool tip, head vertical; printing directions within "
+                f"{k.clearance_deg:g} deg of +Z (the head's clearance)"]
+    r_span = ("unlimited" if k.rotate_min_deg is None and k.rotate_max_deg is None else
+              f"{k.rotate_min_deg if k.rotate_min_deg is not None else '-inf'}.."
+              f"{k.rotate_max_deg if k.rotate_max_deg is not None else 'inf'}")
+    t_lo, t_hi = program.attrs.get("b_range_deg", (0.0, 0.0))
+    r_lo, r_hi = program.attrs.get("c_range_deg", (0.0, 0.0))
+    where = {"table-table": "table tilts and turns", "head-head": "head tilts and turns",
+             "table-head": "head tilts, table turns"}[k.layout]
+    lines = [f"machine: {prof.name}, {prof.layout_words()}, {where}; {lt} about {k.tilt_axis}, {lr} about "
+             f"{k.rotate_axis}, right-hand rule"]
+    if k.layout == "table-table":
+        lines.append(f"machine: tool tip at the {lt} pivot = machine {v(k.pivot)} mm; {lr} axis on the table at pivot + "
+                     f"{v(k.c_offset)} mm at {lt} = 0")
+    elif k.layout == "head-head":
+        lines.append(f"machine: XYZ = tool tip with the head at home; {lt} pivot {v(k.pivot)} mm from the {lr} axis, "
+                     f"tool tip {k.tool_length:.4f} mm below the {lt} axis")
+    else:
+        lines.append(f"machine: XYZ = tool tip with the head at home, tool tip {k.tool_length:.4f} mm below the {lt} "
+                     f"axis; {lr} axis on the table top at machine {v(k.c_offset)} mm")
+    if k.tcp:
+        lines.append(f"machine: TCP ON: XYZ are the tool tip in workpiece coordinates, the part as at {lt} = {lr} = 0; "
+                     "the controller's tool-centre-point kinematics must be active, LinuxCNC: trt kins in TCP mode, "
+                     "with the pivot values above")
+    else:
+        lines.append("machine: TCP OFF: XYZ are machine coordinates that already carry the pivot offsets above; run "
+                     "with tool-centre-point control off, trivial kinematics, or the offsets are applied twice")
+    return lines + [f"machine: {lt} range {k.tilt_min_deg:g}..{k.tilt_max_deg:g} deg, {lr} range {r_span} deg; program "
+                    f"{lt} {t_lo:.2f}..{t_hi:.2f} deg, {lr} {r_lo:.2f}..{r_hi:.2f} deg"]
 
 
 def _summary_comment(program: MachineProgram, met: dict, open_c: str, close_c: str) -> list[str]:
     """What the program is and assumes, with its totals ``met`` (``program_metrics``)."""
     lx, ly, lz, lb, lc, le = program.axis_letters
+    k = program.profile.kinematics
+    frame = "workpiece" if k.tcp else "machine"
+    axes = (f"{lb}: tilt deg; {lc}: rotation deg, unwrapped; " if k.rotary else "")
     return [
-        f"{open_c}Neural Slicer multi-axis program, profile {program.profile.name}{close_c}",
-        f"{open_c}{lx}{ly}{lz}: tool tip in machine mm; {lb}: table tilt deg; {lc}: table rotation deg, "
-        f"unwrapped; {le}: filament mm, absolute{close_c}",
-        f"{open_c}part offset on the C axis: {' '.join(f'{v:.4f}' for v in program.part_offset)}{close_c}",
+        f"{open_c}Neural Slicer {'multi-axis' if k.rotary else 'three-axis non-planar'} program, profile "
+        f"{program.profile.name}, {program.profile.layout_words()}{close_c}",
+        f"{open_c}{lx}{ly}{lz}: tool tip in {frame} mm; {axes}{le}: filament mm, absolute{close_c}",
+        f"{open_c}part offset {'on the rotary axis' if k.layout in ('table-table', 'table-head') else 'on the bed centre'}: "
+        f"{' '.join(f'{v:.4f}' for v in program.part_offset)}{close_c}",
         f"{open_c}moves {met['n_moves']}, waypoints {met['n_waypoints']}, est. time "
         f"{met['estimated_print_time_s']:.1f} s, material {met['material_mm3']:.1f} mm3{close_c}",
     ] + [f"{open_c}{line}{close_c}" for line in _machine_comment(program)]
@@ -266,7 +296,7 @@ def _reprap_body(program: MachineProgram, start: int, stop: int) -> bytes:
     dt = np.maximum(program.time_s[lo:stop], MIN_MOVE_S)
     m = program.machine[lo:stop]
     k = len(m)
-    lin, rot = np.round(m[:, :3], g.decimals_linear), np.round(m[:, 3:5], g.decimals_rotary)
+    lin, rot = np.round(program.program_xyz(lo, stop), g.decimals_linear), np.round(m[:, 3:5], g.decimals_rotary)
     ext = np.round(program.extruder[lo:stop], g.decimals_extruder)
     dxyz, drot, de = np.zeros(k), np.zeros(k), np.zeros(k)
     dxyz[1:] = np.linalg.norm(np.diff(lin, axis=0), axis=1)
@@ -296,12 +326,28 @@ def _reprap_chunks(program: MachineProgram) -> Iterator[bytes]:
     if g.nozzle_temp_c is not None:
         head += [f"M104 S{g.nozzle_temp_c:.0f}", f"M109 S{g.nozzle_temp_c:.0f}"]
     head += [f"G92 {program.axis_letters[5]}0"] + list(g.header)
-    yield _text(head)
+    yield _text(head + thumbnail_comments(program))
+    fan = fan_on(program)
+    features = program.attrs.get("features") or {"moves": [], "kinds": ""}
     for start, stop, info in _layer_segments(program, times[0]):
         layer = ([f";LAYER:{info['number'] - 1}", f"; {_layer_comment(info)}",
                   f"M73 P{int(100 * info['done'])} R{int(np.ceil(info['remaining_s'] / 60))}"] if info else [])
-        yield _text(layer) + _reprap_body(program, start, stop)
-    yield _text(["M73 P100 R0", "M104 S0", "M140 S0"] + list(g.footer) + ["M84"])
+        if fan and info and info["number"] == 2:
+            layer.append(fan)
+        yield _text(layer) + b"".join(_typed_body(program, start, stop, features))
+    yield _text(["M73 P100 R0"] + (["M107"] if fan else []) + ["M104 S0", "M140 S0"] + list(g.footer) + ["M84"]
+                + prusaslicer_totals(program, met))
+
+
+def _typed_body(program: MachineProgram, start: int, stop: int, features: dict) -> Iterator[bytes]:
+    """Moves start..stop-1 with a ``;TYPE:`` line (PrusaSlicer's and Cura's feature tag) before each printing run
+    of another feature (``program.attrs["features"]``, from the toolpath kinds)."""
+    at = np.asarray(features["moves"], np.int64)
+    lo, hi = np.searchsorted(at, start), np.searchsorted(at, stop)
+    cuts = [start] + [int(i) for i in at[lo:hi] if i > start] + [stop]
+    tags = {int(i): FEATURE_NAMES.get(k, "Perimeter") for i, k in zip(at[lo:hi], features["kinds"][lo:hi])}
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        yield (_text([f";TYPE:{tags[a]}"]) if a in tags else b"") + _reprap_body(program, a, b)
 
 
 def linuxcnc_lines(program: MachineProgram) -> list[str]:
@@ -339,3 +385,76 @@ def write_gcode(path: str | Path, program: MachineProgram | bytes) -> Path:
             for chunk in chunks:
                 fh.write(chunk)
     return Path(path)
+
+
+#: PrusaSlicer's thumbnail sizes that print hosts show (the file list, the print screen)
+THUMBNAIL_SIZES = ((32, 32), (220, 124))
+#: at most this many printing moves are drawn in a thumbnail (a 10M-waypoint print takes as long as a small one)
+THUMBNAIL_MAX_POINTS = 400_000
+
+
+def prusaslicer_totals(program: MachineProgram, met: dict) -> list[str]:
+    """PrusaSlicer's totals block, which PrusaSlicer writes and Moonraker and PrusaLink read at the end of a file:
+    filament length, volume and mass, layer count, estimated time (``met``: the program's totals)."""
+    t, mm, grams, n_layers = host_totals(program, met)
+    cm3 = mm * filament_area(program.profile) / 1000.0
+    return [f"; filament used [mm] = {mm:.2f}", f"; filament used [cm3] = {cm3:.2f}",
+            f"; filament used [g] = {grams:.2f}", f"; total filament used [g] = {grams:.2f}", f"; total layers count = {n_layers}",
+            f"; estimated printing time (normal mode) = {t // 3600}h {t // 60 % 60}m {t % 60}s"]
+
+
+def fan_on(program: MachineProgram) -> str | None:
+    """``M106 S0-255`` at the profile's ``gcode.fan_percent`` (None without one)."""
+    pct = program.profile.gcode.fan_percent
+    return None if pct is None else f"M106 S{int(round(pct * 2.55))}"
+
+
+def thumbnail_png(program: MachineProgram, width: int, height: int) -> bytes:
+    """A ``width`` x ``height`` PNG of the printed moves seen from the front, 30 deg above the platform: the part's
+    toolpaths (build frame, ``program.part_xyz``) shaded by height, on a transparent background."""
+    import zlib
+
+    moves = np.flatnonzero(program.kind[1:] != TRAVEL) + 1                # printing moves, drawn as lines
+    steps = 8
+    if len(moves) * steps > THUMBNAIL_MAX_POINTS:
+        moves = moves[np.linspace(0, len(moves) - 1, THUMBNAIL_MAX_POINTS // steps).astype(np.int64)]
+    a, b = program.part_xyz[moves - 1], program.part_xyz[moves]
+    t = np.linspace(0.0, 1.0, steps)[None, :, None]
+    pts = (a[:, None] + t * (b - a)[:, None]).reshape(-1, 3)
+    rgba = np.zeros((height, width, 4), np.uint8)
+    if len(pts):
+        el = np.radians(30.0)
+        u = pts[:, 0] - pts[:, 1]                                          # view from -x -y, 45 deg about z
+        depth = (pts[:, 0] + pts[:, 1]) * np.cos(el) - pts[:, 2] * np.sin(el) * np.sqrt(2.0)
+        v = pts[:, 2] * np.cos(el) * np.sqrt(2.0) + (pts[:, 0] + pts[:, 1]) * np.sin(el)
+        lo, span = np.array([u.min(), v.min()]), max(np.ptp(u) / (width - 2), np.ptp(v) / (height - 2), 1e-9)
+        col = np.clip(((u - lo[0]) / span + (width - np.ptp(u) / span) / 2).astype(np.int64), 0, width - 1)
+        row = np.clip(height - 1 - ((v - lo[1]) / span + (height - np.ptp(v) / span) / 2).astype(np.int64),
+                      0, height - 1)
+        z = pts[:, 2]
+        shade = (z - z.min()) / max(float(np.ptp(z)), 1e-9)
+        order = np.argsort(-depth, kind="stable")                          # far first: near points overwrite
+        color = np.stack([200 + 55 * shade, 90 + 110 * shade, 20 + 40 * shade, np.full_like(shade, 255)], axis=1)
+        rgba[row[order], col[order]] = color[order].astype(np.uint8)
+    raw = b"".join(b"\x00" + rgba[r].tobytes() for r in range(height))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (len(data).to_bytes(4, "big") + kind + data
+                + (zlib.crc32(kind + data) & 0xFFFFFFFF).to_bytes(4, "big"))
+
+    ihdr = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([8, 6, 0, 0, 0])
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b"")
+
+
+def thumbnail_comments(program: MachineProgram, sizes: tuple[tuple[int, int], ...] = THUMBNAIL_SIZES) -> list[str]:
+    """PrusaSlicer's thumbnail blocks (``; thumbnail begin WxH LEN``, the PNG in base64 lines of at most 78
+    characters, ``; thumbnail end``), one per size: what PrusaLink, Moonraker and OctoPrint's thumbnail plugins
+    show."""
+    import base64
+
+    lines: list[str] = []
+    for w, h in sizes:
+        data = base64.b64encode(thumbnail_png(program, w, h)).decode()
+        lines += [f"; thumbnail begin {w}x{h} {len(data)}"] + [f"; {data[i:i + 78]}" for i in range(0, len(data), 78)]
+        lines += ["; thumbnail end", ";"]
+    return lines

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from neuralslicer.cage import interior_points
 from neuralslicer.errors import InputError
@@ -22,6 +22,8 @@ if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is 
 
 class LayerConfig(BaseModel):
     """How layers are chosen and trimmed."""
+
+    model_config = ConfigDict(extra="forbid")
 
     layer_height: float = Field(0.8, gt=0, description="target layer thickness, mm")
     t_min: float = Field(0.4, gt=0, description="smallest acceptable local thickness, mm")

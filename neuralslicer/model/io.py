@@ -13,8 +13,10 @@ import numpy as np
 from neuralslicer.errors import InputError
 from neuralslicer.types import FloatArray, IndexArray
 
-#: Closed or open triangle meshes, read with trimesh.
-SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off")
+#: Closed or open triangle meshes, read with trimesh (3MF: every build item, placed by its transform).
+SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".3mf")
+#: A 3MF model's ``unit`` attribute -> our unit names (3MF's default: millimeter).
+THREEMF_UNITS = {"millimeter": "mm", "centimeter": "cm", "meter": "m", "inch": "in"}
 #: Our own tetrahedral format (see :func:`read_tet`).
 TET_SUFFIXES = (".tet",)
 #: Volume formats read with meshio (anything with tetra cells).
@@ -33,8 +35,33 @@ def _existing(path: str | Path) -> Path:
     return path
 
 
+def threemf_units(path: str | Path) -> str:
+    """The unit a 3MF file declares (``<model unit="...">``, default millimeter) as ``mm``, ``cm``, ``m`` or ``in``;
+    an InputError for micron and foot, which a model spec cannot state."""
+    import zipfile
+    from xml.etree import ElementTree
+
+    path = _existing(path)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            name = next((n for n in archive.namelist() if n.lower().endswith(".model")), None)
+            if name is None:
+                raise InputError(path, "not a 3MF file: no 3D/3dmodel.model part in the archive")
+            with archive.open(name) as part:
+                _, root = next(ElementTree.iterparse(part, events=("start",)))
+    except (zipfile.BadZipFile, ElementTree.ParseError, StopIteration) as exc:
+        raise InputError(path, f"not a 3MF file ({exc})") from None
+    unit = root.get("unit", "millimeter")
+    if unit not in THREEMF_UNITS:
+        raise InputError(path, f"the 3MF's unit is {unit!r}; export it in millimeter, centimeter, meter or inch")
+    return THREEMF_UNITS[unit]
+
+
 def read_surface(path: str | Path) -> tuple[FloatArray, IndexArray]:
-    """Triangle mesh from STL/OBJ/PLY/OFF: ``vertices (n, 3) float64``, ``faces (m, 3) int64``.
+    """Triangle mesh from STL/OBJ/PLY/OFF/3MF: ``vertices (n, 3) float64``, ``faces (m, 3) int64``.
+
+    A 3MF's build items are placed by their transforms and joined into one mesh, in the file's own unit
+    (:func:`threemf_units`: the unit its spec takes by default).
 
     Duplicate vertices (as in STL) are merged; faces are kept as they are, holes and all.
     """

@@ -25,10 +25,10 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
 from neuralslicer.fileio import json_sha256
-from neuralslicer.errors import InputError
+from neuralslicer.errors import InputError, unknown_key_message
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.model.io import (
-    POINT_SUFFIXES, SURFACE_SUFFIXES, TET_SUFFIXES, VOLUME_SUFFIXES, ply_face_count,
+    POINT_SUFFIXES, SURFACE_SUFFIXES, TET_SUFFIXES, VOLUME_SUFFIXES, ply_face_count, threemf_units,
 )
 
 #: Length of one spec unit in millimetres.
@@ -43,7 +43,7 @@ class _Strict(BaseModel):
 
 
 class MeshComponentSpec(_Strict):
-    """A closed triangle mesh (STL/OBJ/PLY/OFF): signed distance, sign by winding number."""
+    """A closed triangle mesh (STL/3MF/OBJ/PLY/OFF): signed distance, sign by winding number."""
 
     type: Literal["mesh"]
     file: Path = Field(description="Mesh file, relative to the spec's folder.")
@@ -257,14 +257,17 @@ def spec_from_dict(data: Any, where: str | Path = "spec", folder: Path | None = 
     except ValidationError as exc:
         errors = exc.errors()
         first = tuple(errors[0]["loc"])
-        # within one key, the deepest error is the most specific (e.g. a union's matching branch)
-        err = max((e for e in errors if tuple(e["loc"])[:1] == first[:1]), key=lambda e: len(e["loc"]))
+        # within one key, the deepest error is the most specific (e.g. a union's matching branch); of equally deep
+        # ones an unknown key first (a misspelt required key is also missing: the misspelling is the news)
+        err = max((e for e in errors if tuple(e["loc"])[:1] == first[:1]),
+                  key=lambda e: (len(e["loc"]), e["type"] == "extra_forbidden"))
         loc = tuple(err["loc"])
         if loc[0] == "platform" and "z" not in loc:
             err = {"type": "platform", "msg": "must be 'auto' or {z: <height>}"}
         if err["type"] in ("union_tag_invalid", "union_tag_not_found"):
             loc = loc + ("type",)
-        raise InputError(_where(where, _yaml_line(yaml_root, loc)), f"{_key(loc)}: {_message(err)}") from None
+        message = unknown_key_message(ModelSpec, loc) if err["type"] == "extra_forbidden" else _message(err)
+        raise InputError(_where(where, _yaml_line(yaml_root, loc)), f"{_key(loc)}: {message}") from None
     folder = folder if folder is not None else Path.cwd()
     for i, comp in enumerate(spec.components):
         comp.file = (folder / comp.file).resolve() if not comp.file.is_absolute() else comp.file
@@ -292,12 +295,13 @@ def load_spec(path: str | Path) -> ModelSpec:
     return spec
 
 
-def spec_for_file(path: str | Path, up: str = "z", units: str = "mm") -> ModelSpec:
+def spec_for_file(path: str | Path, up: str = "z", units: str | None = None) -> ModelSpec:
     """Spec for a single model file given on the command line (type from the extension).
 
-    ``.stl/.obj/.off`` and ``.ply`` with faces -> ``mesh``; ``.xyz/.pcd`` and ``.ply`` without
+    ``.stl/.obj/.off/.3mf`` and ``.ply`` with faces -> ``mesh``; ``.xyz/.pcd`` and ``.ply`` without
     faces -> ``points``; ``.tet`` and meshio volume formats -> ``tet``; ``.yaml/.yml`` ->
-    :func:`load_spec` (``up``/``units`` then come from the file).
+    :func:`load_spec` (``up``/``units`` then come from the file). ``units`` defaults to mm, for a 3MF to the
+    unit the file declares; a 3MF given another unit is an error (the file states its own).
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -318,7 +322,12 @@ def spec_for_file(path: str | Path, up: str = "z", units: str = "mm") -> ModelSp
                                f"({', '.join(TET_SUFFIXES + VOLUME_SUFFIXES)}) or a spec (.yaml)")
     if not path.is_file():
         raise InputError(path, "no such file")
-    return spec_from_dict({"up": up, "units": units, "components": [{"type": kind, "file": str(path)}]},
+    if suffix == ".3mf":
+        declared = threemf_units(path)
+        if units not in (None, declared):
+            raise InputError(path, f"the 3MF states its unit, {declared}; leave out the units or give {declared}")
+        units = declared
+    return spec_from_dict({"up": up, "units": units or "mm", "components": [{"type": kind, "file": str(path)}]},
                           where="command line", folder=Path.cwd())
 
 
@@ -334,7 +343,7 @@ def file_sha256(path: Path) -> str:
 def load_model(path: str | Path, up: str | None = None, units: str | None = None) -> ModelSpec:
     """The spec of a model file or spec YAML (:func:`spec_for_file`), with ``up`` / ``units`` where given overriding
     the spec's own (left alone when None: a spec's ``up`` is never replaced by a default)."""
-    spec = spec_for_file(path, up or "z", units or "mm")
+    spec = spec_for_file(path, up or "z", units)
     update = {k: v for k, v in (("up", up), ("units", units)) if v is not None and getattr(spec, k) != v}
     if update:
         source = spec.source

@@ -13,7 +13,7 @@ from neuralslicer.layers import LayerConfig
 from neuralslicer.model.grid import values_above
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.material import PrintedMaterial
-from neuralslicer.motion.planning import MachineProgram, merge_short_moves, plan_motion, program_metrics
+from neuralslicer.motion.planning import MachineProgram, feature_runs, merge_short_moves, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile, load_profile
 from neuralslicer.motion.reorient import clamp_to_platform, clamp_to_reach, tilt_away
 from neuralslicer.motion.travel import raise_travels
@@ -87,6 +87,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     held, n_merged = tp.attrs.pop("held_beads", None), tp.attrs.pop("n_merged_short_moves", 0)
     toolpaths_s = tp.attrs.pop("toolpaths_s", 0.0)
     t1 = time.perf_counter()
+    tp, vertical = _vertical_head(tp, profile)
     # near the platform a tilted head dips below it: turn those axes up first (exact, local), the check judges after
     tp, platform = clamp_to_platform(tp, profile.nozzle, platform_z, cfg.collision_tilt_deg)
     # the beads as planned: one structure for the check, the lifts and the tilts (they move the nozzle, not the beads)
@@ -103,14 +104,17 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
+    program.attrs["features"] = feature_runs(program, tp.path, tp.attrs.get("path_kinds", ""))
     t4 = time.perf_counter()
     metrics = program_metrics(program)
+    if vertical is not None:
+        metrics["three_axis"] = vertical
     metrics.update(travel_lift=lifted, axis_tilt=tilt, axis_reach=reach, axis_platform=platform,
                    n_merged_short_moves=n_merged,
                    beads=held if held is not None else bead_summary(tp, profile.nozzle.bead_thickness_mm),
                    n_waypoints=len(tp), n_layers=tp.n_layers, n_paths=int(tp.attrs.get("n_paths", 0)))
     metrics.update(report.summary())
-    metrics.update({k: v for k, v in program.attrs.items() if k not in ("platform_z", "isovalues")})
+    metrics.update({k: v for k, v in program.attrs.items() if k not in ("platform_z", "isovalues", "features")})
     on = tp.path >= 0
     metrics["thickness_mm"] = {"min": float(tp.thickness[on].min()), "mean": float(tp.thickness[on].mean()),
                                "max": float(tp.thickness[on].max())}
@@ -120,6 +124,25 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
+
+
+def _vertical_head(tp: Toolpaths, profile: MachineProfile) -> tuple[Toolpaths, dict | None]:
+    """On a three-axis machine the head stays vertical: the tool axes set to +z (the check, the lifts and the
+    program see the head as it is), with how far the printing directions (the layers' normals) lean from +z
+    against the head's clearance; five-axis toolpaths unchanged (and None)."""
+    kin = profile.kinematics
+    if kin.rotary:
+        return tp, None
+    on = tp.extrude
+    lean = np.degrees(np.arccos(np.clip(tp.axis[on, 2], -1.0, 1.0)))
+    beyond = lean > kin.clearance_deg + 1e-6
+    summary = {"clearance_deg": float(kin.clearance_deg), "max_printing_angle_deg": float(lean.max(initial=0.0)),
+               "p99_printing_angle_deg": float(np.percentile(lean, 99)) if len(lean) else 0.0,
+               "n_printing_beyond_clearance": int(beyond.sum()),
+               "frac_printing_beyond_clearance": float(beyond.mean()) if len(lean) else 0.0}
+    axis = np.zeros_like(tp.axis)
+    axis[:, 2] = 1.0
+    return dataclasses.replace(tp, axis=axis, attrs=dict(tp.attrs)), summary
 
 
 def _merged_lifts(first: dict, second: dict) -> dict:
@@ -139,7 +162,8 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
     pass that does not lower the count is dropped. Later passes try the collisions the ramps caused."""
     summary = {"n_collisions_before": report.count, "n_collisions_cleared": 0, "n_untiltable_collisions": 0,
                "n_waypoints_tilted": 0, "max_tilt_deg": 0.0}
-    if not report.count or cfg.collision_tilt_deg <= 0 or report.count > cfg.collision_tilt_max_waypoints:
+    if (not report.count or cfg.collision_tilt_deg <= 0 or report.count > cfg.collision_tilt_max_waypoints
+            or not profile.kinematics.rotary):
         return tp, report, summary
     min_height = default_min_height(tp)
     material = PrintedMaterial.of_toolpaths(tp) if material is None else material
@@ -174,17 +198,17 @@ def _tilt_clear(tp: Toolpaths, report: CollisionReport, profile: MachineProfile,
 def _clamp_reach(tp: Toolpaths, report: CollisionReport, profile: MachineProfile, platform_z: float,
                  cfg: ToolpathConfig, material: PrintedMaterial | None = None
                  ) -> tuple[Toolpaths, CollisionReport, dict]:
-    """Tool axes beyond the machine's B range turned back to it: up to ``cfg.collision_tilt_deg`` always, any
+    """Tool axes beyond the machine's tilt range turned back to it: up to ``cfg.collision_tilt_deg`` always, any
     angle with ``kinematics.beyond_reach = "turn"`` (else a PlanError naming the layers); the turned
     waypoints checked for collisions again."""
     kin = profile.kinematics
-    reach_deg = min(180.0, max(kin.b_max_deg, -kin.b_min_deg))
+    reach_deg = kin.reach_deg()
     excess = np.degrees(np.arccos(np.clip(tp.axis[:, 2], -1.0, 1.0))) - reach_deg
     far = excess > cfg.collision_tilt_deg + 1e-9
     if far.any() and kin.beyond_reach == "fail":
         layers = np.unique(tp.layer[far])
         raise PlanError(f"{int(far.sum()):,} waypoints need the tool axis more than {cfg.collision_tilt_deg:g} deg beyond "
-                        f"the machine's B reach ({reach_deg:g} deg from +z, {profile.name}) in layers "
+                        f"the machine's reach ({reach_deg:g} deg from +z, {profile.name}) in layers "
                         f"{', '.join(str(int(k)) for k in layers[:10])}{' ...' if len(layers) > 10 else ''}; "
                         "kinematics.beyond_reach: turn turns them back onto the limit")
     clamped, summary = clamp_to_reach(tp, reach_deg, 180.0)

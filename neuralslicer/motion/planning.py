@@ -7,7 +7,7 @@ import numpy as np
 
 from neuralslicer.errors import PlanError
 from neuralslicer.motion.kinematics import (ROWS_PER_BLOCK, forward_kinematics, inverse_kinematics, machine_position,
-                                            tool_axis)
+                                            tool_axis, workpiece_position)
 from neuralslicer.motion.profile import Feeds, MachineProfile
 from neuralslicer.motion.timing import program_time
 from neuralslicer.toolpath.types import Toolpaths
@@ -21,9 +21,10 @@ _ARRAYS = ("machine", "extruder", "time_s", "kind", "source", "layer", "part_xyz
 
 @dataclass
 class MachineProgram:
-    """Moves of a table-table B/C printer, in execution order.
+    """Moves of a printer, in execution order.
 
-    machine : (n, 5) float64 X, Y, Z (mm), B, C (deg, C unwrapped) at the end of each move;
+    machine : (n, 5) float64 X, Y, Z (mm), T, R (deg: the tilt and the rotary axis of the profile's layout, R
+    unwrapped; both 0 on a three-axis printer) at the end of each move;
     extruder : (n,) absolute filament position (mm) at the end of each move;
     time_s : (n,) planned duration of each move; kind : (n,) int8 TRAVEL/PRINT/RETRACT (RETRACT:
     extruder-only moves, retraction < 0 or prime > 0); source : (n,) int64 toolpath waypoint index
@@ -69,7 +70,7 @@ class MachineProgram:
 
     @property
     def axis_letters(self) -> tuple[str, ...]:
-        """G-code letters of X, Y, Z, B, C and the extruder."""
+        """G-code letters of X, Y, Z, the tilt, the rotary axis and the extruder."""
         a = self.profile.axes
         return (a.x, a.y, a.z, a.tilt, a.rotate, a.extruder)
 
@@ -77,6 +78,15 @@ class MachineProgram:
         """Forward kinematics of all moves: tool tip and tool axis in the build frame."""
         return forward_kinematics(self.machine[:, :3], self.machine[:, 3], self.machine[:, 4],
                                   self.profile.kinematics, self.part_offset)
+
+    def program_xyz(self, start: int = 0, stop: int | None = None) -> FloatArray:
+        """The XYZ the G-code carries for moves start..stop-1: machine coordinates, or with ``kinematics.tcp`` the
+        tool tip in workpiece coordinates (the part at home), which the controller's TCP turns into machine ones."""
+        m = self.machine[start:stop]
+        if not self.profile.kinematics.tcp:
+            return m[:, :3]
+        p, _ = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], self.profile.kinematics, self.part_offset)
+        return workpiece_position(p, self.profile.kinematics, self.part_offset)
 
 
 def auto_part_offset(tp: Toolpaths, platform_z: float) -> FloatArray:
@@ -221,13 +231,18 @@ def _rotary_steps(frm: FloatArray, targets: list[FloatArray], max_step_deg: floa
 
 
 def safe_height(program: MachineProgram) -> float:
-    """Machine Z at which the tool tip clears the part at any B/C: above the sphere around the pivot holding it."""
+    """Machine Z at which the tool tip clears the part at any rotary angles: above the sphere around the pivot
+    holding it (table-table), else above the part's top (a head's tilt lifts the tip, a table's rotation keeps z)."""
     return _safe_height(program.part_xyz, program.part_offset, program.profile)
 
 
 def _safe_height(part_xyz: FloatArray, part_offset: FloatArray, profile: MachineProfile) -> float:
     """``safe_height`` of moves reaching ``part_xyz`` (n, 3) (blocks of rows)."""
     kin = profile.kinematics
+    if kin.layout != "table-table":
+        top = float(part_xyz[:, 2].max(initial=0.0)) + float(part_offset[2])
+        lift = float(kin.c_offset[2])                 # the bed's (or rotary table's) top in machine Z
+        return top + lift + profile.gcode.safe_clearance_mm
     reach = max((float(np.linalg.norm(part_xyz[a:a + ROWS_PER_BLOCK] + part_offset, axis=1).max())
                  for a in range(0, len(part_xyz), ROWS_PER_BLOCK)), default=0.0)
     return float(kin.pivot[2] + np.linalg.norm(kin.c_offset) + reach + profile.gcode.safe_clearance_mm)
@@ -252,9 +267,9 @@ def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None, c
     kin, f, ex, g = prof.kinematics, prof.feeds, prof.extrusion, prof.gcode
     z_safe = safe_height(program) if z_safe is None else z_safe
     m0, mn = program.machine[0].copy(), program.machine[-1].copy()
-    above0 = np.array([m0[0], m0[1], z_safe, 0.0, _home_c(m0[4], kin.c_min_deg, kin.c_max_deg)])
+    above0 = np.array([m0[0], m0[1], z_safe, 0.0, _home_c(m0[4], kin.rotate_min_deg, kin.rotate_max_deg)])
     start = np.vstack([above0[None], _rotary_steps(above0, [np.r_[m0[:2], z_safe, m0[3:5]]], kin.max_rotary_step_deg)])
-    home = np.r_[mn[:2], z_safe, 0.0, _home_c(mn[4], kin.c_min_deg, kin.c_max_deg)]
+    home = np.r_[mn[:2], z_safe, 0.0, _home_c(mn[4], kin.rotate_min_deg, kin.rotate_max_deg)]
     park = np.r_[g.park_xy if g.park_xy is not None else mn[:2], z_safe, home[3:5]]
     end = _rotary_steps(mn, [np.r_[mn[:2], z_safe, mn[3:5]], home, park], kin.max_rotary_step_deg)
     # moves: start..., approach (program move 0), prime, program moves 1.., retract, end...
@@ -345,14 +360,18 @@ def c_turns(c: FloatArray, kind: np.ndarray, lo: float, hi: float) -> np.ndarray
     """Whole turns (n,) to add to each move's C so that all lie in [lo, hi]: one number for the program when
     that fits; else kept per path (a travel run and the moves up to the next) while a path fits, changed at
     its start when it must, and inside a path only when the path alone spans more than the range (there to
-    the far end of the range, the fewest unwinds). The first turn count is the one nearest zero. With one
-    side of the range open a single count always fits."""
+    the far end of the range, the fewest unwinds). Where the count changes, the move before (the pose the
+    axis is turned at) fits the new count too. The first turn count is the one nearest zero. With one side of
+    the range open a single count always fits."""
     n = len(c)
     k_lo, k_hi = _turns_fitting(float(c.min(initial=0.0)), float(c.max(initial=0.0)), lo, hi)
     if n == 0 or k_lo <= k_hi:
         return np.full(n, 0.0 if n == 0 else float(np.clip(0.0, k_lo, k_hi)))
     starts = _segment_starts(kind)
     seg_lo, seg_hi = np.minimum.reduceat(c, starts), np.maximum.reduceat(c, starts)
+    # a count that changes at a path's start turns the axis at the pose before it: that pose must fit the new count
+    before = c[np.maximum(starts - 1, 0)]
+    seg_lo, seg_hi = np.minimum(seg_lo, before), np.maximum(seg_hi, before)
     ends = np.r_[starts[1:], n]
     turns = np.empty(n)
     k = None
@@ -366,7 +385,9 @@ def c_turns(c: FloatArray, kind: np.ndarray, lo: float, hi: float) -> np.ndarray
         for i in range(a, b):                      # the path spans more than the range: unwind inside it,
             if k is None or not lo <= c[i] + 360.0 * k <= hi:   # to the end of the range it moves away from
                 up = c[i] + 360.0 * k > hi if k is not None else rising
-                k = float(np.ceil((lo - c[i]) / 360.0 - 1e-12) if up else np.floor((hi - c[i]) / 360.0 + 1e-12))
+                pair = c[max(i - 1, 0):i + 1]      # the pose turned at (the move before) and the move itself
+                k = float(np.ceil((lo - pair.min()) / 360.0 - 1e-12) if up
+                          else np.floor((hi - pair.max()) / 360.0 + 1e-12))
             turns[i] = k
     return turns
 
@@ -377,8 +398,8 @@ def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, in
     same pose and primes. Returns the program and the number of unwinds."""
     prof = program.profile
     kin, f, ex = prof.kinematics, prof.feeds, prof.extrusion
-    lo = -np.inf if kin.c_min_deg is None else float(kin.c_min_deg)
-    hi = np.inf if kin.c_max_deg is None else float(kin.c_max_deg)
+    lo = -np.inf if kin.rotate_min_deg is None else float(kin.rotate_min_deg)
+    hi = np.inf if kin.rotate_max_deg is None else float(kin.rotate_max_deg)
     if not len(program) or (np.isinf(lo) and np.isinf(hi)):
         return program, 0
     turns = c_turns(program.machine[:, 4], program.kind, lo, hi)
@@ -422,17 +443,21 @@ def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, in
 
 
 def check_limits(program: MachineProgram) -> None:
-    """Raise PlanError when any pose lies outside the profile's B or C range (naming layers and counts)."""
+    """Raise PlanError when any pose lies outside the profile's tilt or rotary range (naming layers and counts)."""
     kin = program.profile.kinematics
+    if not kin.rotary:
+        return
     b, c = program.machine[:, 3], program.machine[:, 4]
     tol = 1e-6
-    bad_b = (b < kin.b_min_deg - tol) | (b > kin.b_max_deg + tol)
+    bad_b = (b < kin.tilt_min_deg - tol) | (b > kin.tilt_max_deg + tol)
     bad_c = np.zeros(len(c), bool)
-    if kin.c_min_deg is not None:
-        bad_c |= c < kin.c_min_deg - tol
-    if kin.c_max_deg is not None:
-        bad_c |= c > kin.c_max_deg + tol
-    for bad, axis, lo, hi in ((bad_b, "B", kin.b_min_deg, kin.b_max_deg), (bad_c, "C", kin.c_min_deg, kin.c_max_deg)):
+    if kin.rotate_min_deg is not None:
+        bad_c |= c < kin.rotate_min_deg - tol
+    if kin.rotate_max_deg is not None:
+        bad_c |= c > kin.rotate_max_deg + tol
+    _, _, _, lt, lr, _ = program.axis_letters
+    for bad, axis, lo, hi in ((bad_b, lt, kin.tilt_min_deg, kin.tilt_max_deg),
+                              (bad_c, lr, kin.rotate_min_deg, kin.rotate_max_deg)):
         if bad.any():
             layers, counts = np.unique(program.layer[bad], return_counts=True)
             where = ", ".join(f"layer {int(k)} ({int(n)})" for k, n in list(zip(layers, counts))[:8])
@@ -443,7 +468,7 @@ def check_limits(program: MachineProgram) -> None:
 
 
 def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None = None) -> MachineProgram:
-    """Machine program for toolpaths: IK with continuous B/C, rotary splitting, feeds, extrusion.
+    """Machine program for toolpaths: IK with continuous rotary axes, rotary splitting, feeds, extrusion.
 
     Extrusion per print move = flow * mean thickness * mean width * length / filament area (mm of
     filament); travels longer than ``extrusion.retract_min_travel`` retract before and prime after.
@@ -470,7 +495,7 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
         part_xyz, part_axis = np.zeros((0, 3)), np.zeros((0, 3))
         e.pop("xyz")
     else:
-        part_xyz, part_axis = e.pop("xyz"), tool_axis(machine[:, 3], machine[:, 4])
+        part_xyz, part_axis = e.pop("xyz"), tool_axis(machine[:, 3], machine[:, 4], kin)
     program = MachineProgram(machine=machine, extruder=np.cumsum(e.pop("de")), time_s=e.pop("dt"), kind=e.pop("kind"),
                              source=e.pop("source").astype(np.int64, copy=False),
                              layer=e.pop("layer").astype(np.int64, copy=False),
@@ -495,6 +520,29 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
         "c_range_deg": [float(machine[:, 4].min()), float(machine[:, 4].max())],
     }
     return program
+
+
+#: what print hosts call the toolpath kinds (``toolpath/generate.py``: SHELL, INFILL, STRESS), PrusaSlicer's names
+FEATURE_NAMES = {"0": "Perimeter", "1": "Internal infill", "2": "Internal infill"}
+
+
+def feature_runs(program: MachineProgram, path: IndexArray, path_kinds: str) -> dict[str, object]:
+    """Where the printed feature changes: ``{"moves": [i, ...], "kinds": "01..."}``, each the first printing move of a
+    run of one feature (its rotary-split parts included) and one digit of its toolpath kind (``path``: the toolpaths'
+    path id per waypoint, ``path_kinds``: one digit per path id); a run ends where :data:`FEATURE_NAMES` changes."""
+    n = len(program)
+    src = program.source
+    ahead = np.where(src >= 0, np.arange(n), n)
+    ahead = np.minimum.accumulate(ahead[::-1])[::-1]             # the next move that reaches a waypoint
+    printing = np.flatnonzero((program.kind == PRINT) & (ahead < n))
+    pid = path[src[ahead[printing]]]
+    printing, pid = printing[pid >= 0], pid[pid >= 0]
+    if not len(printing) or int(pid.max()) >= len(path_kinds):
+        return {"moves": [], "kinds": ""}
+    codes = np.frombuffer(path_kinds.encode(), np.uint8)[pid]
+    named = np.array([ord(FEATURE_NAMES.get(chr(c), "Perimeter")[0]) for c in range(256)], np.uint8)[codes]
+    start = np.r_[True, named[1:] != named[:-1]]
+    return {"moves": [int(i) for i in printing[start]], "kinds": codes[start].tobytes().decode()}
 
 
 def program_metrics(program: MachineProgram, times: tuple[FloatArray, FloatArray] | None = None) -> dict:

@@ -1,10 +1,11 @@
-"""Machine profiles (YAML + pydantic): kinematic geometry, limits, feeds, extrusion, nozzle."""
+"""Machine profiles (YAML + pydantic): the kinematic chain, limits, feeds, extrusion, nozzle."""
 from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -21,45 +22,98 @@ class AxisLetters(_Model):
     x: str = "X"
     y: str = "Y"
     z: str = "Z"
-    #: table tilt (rotation about machine +Y through the pivot).
+    #: the tilting rotary axis (``kinematics.tilt_axis``): B when it turns about Y, A when about X.
     tilt: str = "B"
-    #: table rotation (about the table's own +Z axis).
+    #: the rotary axis about Z (``kinematics.rotate_axis``): C.
     rotate: str = "C"
     #: filament axis: "A" on the LinuxCNC profile (linear-like, mm of filament), "E" on RepRap.
     extruder: str = "A"
 
 
-class Kinematics(_Model):
-    """Table-table B/C geometry; the tool is fixed along machine +Z, the tool tip is the control point.
+#: the layouts a profile can describe: where each of the two rotary axes sits (none on a three-axis printer)
+LAYOUTS = ("table-table", "head-head", "table-head", "three-axis")
+_LEGACY_KEYS = {"b_min_deg": "tilt_min_deg", "b_max_deg": "tilt_max_deg", "c_min_deg": "rotate_min_deg",
+                "c_max_deg": "rotate_max_deg"}
 
-    A part point ``p`` (build frame) is at machine position
-    ``pivot + R_y(B) (c_offset + R_z(C) (p + part_offset))``.
+
+class Kinematics(_Model):
+    """The machine as a kinematic chain: a rotary axis that tilts (about machine X or Y at home) and one that
+    turns about Z, each moving the table or the head, or none (three-axis). The tool tip is the control point.
+
+    With R_T the tilt (about ``tilt_axis``) and R_R the rotation (about ``rotate_axis``), a part point ``p``
+    (build frame) and the tool tip at machine position ``m`` meet where
+    - table-table (the rotary table rides on the tilting cradle): ``m = pivot + R_T (c_offset + R_R (p + part_offset))``;
+    - head-head (the tilt rides on the rotary head): ``m + R_R (pivot + R_T t) - (pivot + t) = c_offset + p +
+      part_offset``;
+    - table-head (tilting head, rotary table): ``m + R_T t - t = c_offset + R_R (p + part_offset)``;
+    - three-axis: ``m = c_offset + p + part_offset``;
+    where ``t = (0, 0, -tool_length)`` runs from the head's tilt pivot to the tool tip (head layouts zero
+    machine XYZ on the tool tip with the head at home). See ``neuralslicer.motion.kinematics``.
     """
 
-    kind: Literal["table_bc"] = "table_bc"
-    #: machine XYZ of the tool tip when it is at the tilt-axis pivot (includes the tool length).
+    layout: Literal["table-table", "head-head", "table-head", "three-axis"] = "table-table"
+    #: direction of the tilting axis at home (right-hand rule, the table's or the head's rotation):
+    #: "+Y" for a B axis, "+X" for an A axis; a minus sign where the machine turns the other way.
+    tilt_axis: Literal["+X", "-X", "+Y", "-Y"] = "+Y"
+    #: direction of the rotary axis at home: "+Z", or "-Z" where the machine turns the other way.
+    rotate_axis: Literal["+Z", "-Z"] = "+Z"
+    #: table-table: machine XYZ of the tool tip when it is at the tilt-axis pivot (includes the tool length).
+    #: head-head: the tilt pivot's offset from the rotary axis in the head, at home (usually 0 0 0).
+    #: table-head: unused (0 0 0).
     pivot: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: vector from the pivot to the point where the C axis crosses the table, table frame at B=0.
+    #: table-table: vector from the pivot to the point where the rotary axis crosses the table, table frame
+    #: at home. table-head: machine XYZ of the point where the rotary axis crosses the table top. head-head and
+    #: three-axis: machine XYZ of the bed's centre on its top (where the part is placed by default).
     c_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: build-frame origin in the C-axis frame; null = centre the part's xy on C, platform on the table.
+    #: head layouts: distance from the tilt axis to the tool tip along the tool (mm); else 0.
+    tool_length: float = Field(0.0, ge=0)
+    #: build-frame origin relative to the rotary axis on the table (or the fixed bed's centre, ``c_offset``); null =
+    #: centre the part's xy on it, the platform on the table (z = 0).
     part_offset: tuple[float, float, float] | None = None
-    #: B range (deg); both IK solutions (B, C) and (-B, C+180) are tried.
-    b_min_deg: float = -90.0
-    b_max_deg: float = 90.0
-    #: C range (deg); null = unlimited (continuous rotary axis, unwrapped). When set (a span of at least
-    #: 360 deg), C is unwound by whole turns where it would leave the range: between paths where a path
-    #: fits, else inside it, each time retracting, lifting to the safe height, turning, coming back down.
-    c_min_deg: float | None = None
-    c_max_deg: float | None = None
-    #: tool axes tipped further from +z than the B range reaches: "turn" them back onto the limit (azimuth
+    #: tilt range (deg); both IK solutions are tried: (T, R) and (-T, R + 180).
+    tilt_min_deg: float = -90.0
+    tilt_max_deg: float = 90.0
+    #: rotary range (deg); null = unlimited (continuous rotary axis, unwrapped). When set (a span of at least
+    #: 360 deg), the rotary axis is unwound by whole turns where it would leave the range: between paths where a
+    #: path fits, else inside it, each time retracting, lifting to the safe height, turning, coming back down.
+    rotate_min_deg: float | None = None
+    rotate_max_deg: float | None = None
+    #: the controller does tool-centre-point control (LinuxCNC xyzbc-trt-kins / xyzac-trt-kins in TCP mode,
+    #: RTCP, TRAORI, M128): false (default) writes machine coordinates that carry the kinematics above (the
+    #: controller must run without TCP, or the offsets are applied twice); true writes the tool tip in workpiece
+    #: coordinates (the part on the table at home) with the rotary angles, and the controller does the rest.
+    tcp: bool = False
+    #: three-axis: the largest angle between the printing direction and +z that the vertical head clears (deg):
+    #: at most 90 - nozzle.cone_half_angle_deg (the cone's flank), less for the bead's squish and the flat tip.
+    clearance_deg: float = Field(30.0, gt=0, lt=90)
+    #: tool axes tipped further from +z than the tilt range reaches: "turn" them back onto the limit (azimuth
     #: kept, the turned waypoints checked for collisions again and reported), or "fail" the plan with an
     #: error naming the layers. Turns up to ``toolpath.collision_tilt_deg`` happen either way.
     beyond_reach: Literal["turn", "fail"] = "turn"
     #: largest rotary change per move (deg); longer moves are split.
     max_rotary_step_deg: float = Field(2.0, gt=0)
-    #: tool axes within this angle of the C axis are singular: B = 0 and C keeps its previous value.
+    #: tool axes within this angle of the rotary axis are singular: tilt 0, the rotary axis keeps its value.
     singular_tol_deg: float = Field(0.05, ge=0)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy(cls, data: object) -> object:
+        """Programs stored before layouts existed: ``kind: table_bc`` and the B/C names of the limits."""
+        if isinstance(data, dict) and data.get("kind") == "table_bc":
+            data = {_LEGACY_KEYS.get(k, k): v for k, v in data.items() if k != "kind"}
+        return data
+
+    @property
+    def rotary(self) -> bool:
+        """Whether the machine has rotary axes (all layouts but three-axis)."""
+        return self.layout != "three-axis"
+
+    def reach_deg(self) -> float:
+        """Largest angle between the tool axis and +z (deg) the machine reaches: the tilt range, or the
+        three-axis clearance."""
+        if not self.rotary:
+            return float(self.clearance_deg)
+        return min(180.0, max(self.tilt_max_deg, -self.tilt_min_deg))
 
 class Feeds(_Model):
     """Speeds (mm/s of the tool tip relative to the part, deg/s for pure rotations) and the machine's axis
@@ -139,6 +193,9 @@ class GcodeOptions(_Model):
     decimals_extruder: int = Field(5, ge=1, le=8)
     nozzle_temp_c: float | None = 210.0
     bed_temp_c: float | None = 60.0
+    #: RepRap: part-cooling fan speed in percent, M106 S0-255 from the second layer on (the first layer cools
+    #: slowly, on the platform) and M107 at the end; null: no fan commands.
+    fan_percent: float | None = Field(None, ge=0, le=100)
     header: list[str] = Field(default_factory=list)
     footer: list[str] = Field(default_factory=list)
     #: start at a safe height (rotary axes turned there, then down along the tool axis, prime) and end
@@ -165,19 +222,46 @@ class MachineProfile(_Model):
 
     @model_validator(mode="after")
     def _check(self) -> "MachineProfile":
-        letters = [self.axes.x, self.axes.y, self.axes.z, self.axes.tilt, self.axes.rotate,
-                   self.axes.extruder]
+        k = self.kinematics
+        letters = [self.axes.x, self.axes.y, self.axes.z] + ([self.axes.tilt, self.axes.rotate] if k.rotary else []) \
+            + [self.axes.extruder]
         if len(set(letters)) != len(letters) or any(len(c) != 1 or not c.isalpha() for c in letters):
             raise ValueError(f"axes: letters must be distinct single letters, got {letters}")
         if self.gcode.dialect == "linuxcnc" and self.axes.extruder.upper() not in "ABCUVW":
             raise ValueError("axes.extruder: LinuxCNC has no E axis; use one of A B C U V W")
-        k = self.kinematics
-        if k.b_min_deg >= k.b_max_deg:
-            raise ValueError("kinematics: b_min_deg must be below b_max_deg")
-        if k.c_min_deg is not None and k.c_max_deg is not None and k.c_max_deg - k.c_min_deg < 360.0:
-            raise ValueError("kinematics: the C range must span at least 360 deg (c_max_deg - c_min_deg), "
+        if k.tilt_min_deg >= k.tilt_max_deg:
+            raise ValueError("kinematics: tilt_min_deg must be below tilt_max_deg")
+        if k.rotate_min_deg is not None and k.rotate_max_deg is not None and k.rotate_max_deg - k.rotate_min_deg < 360.0:
+            raise ValueError("kinematics: the rotary range must span at least 360 deg (rotate_max_deg - rotate_min_deg), "
                              "or be unlimited (null)")
+        unused = {"table-table": ("tool_length",), "head-head": (),
+                  "table-head": ("pivot",), "three-axis": ("pivot", "tool_length")}[k.layout]
+        for name in unused:
+            if np.any(np.asarray(getattr(k, name), float) != 0.0):
+                raise ValueError(f"kinematics.{name}: not used by a {k.layout} machine; leave it 0")
+        if k.tcp and not k.rotary:
+            raise ValueError("kinematics.tcp: a three-axis machine has no rotary axes to compensate; set it false")
+        if not k.rotary and k.clearance_deg > self.head_clearance_deg() + 1e-9:
+            raise ValueError(f"kinematics.clearance_deg: {k.clearance_deg:g} deg is more than the vertical head clears "
+                             f"on a slope, {self.head_clearance_deg():.1f} deg (the cone's flank, 90 - "
+                             "nozzle.cone_half_angle_deg, and the holder's rim, atan(cone_length / holder_radius))")
         return self
+
+    def head_clearance_deg(self) -> float:
+        """The steepest plane slope (deg) through the tool tip that a vertical head clears: the cone's flank
+        (90 - cone half angle) and the holder's rim (atan(cone_length / holder_radius)), whichever is lower."""
+        n = self.nozzle
+        return float(min(90.0 - n.cone_half_angle_deg, np.degrees(np.arctan2(n.cone_length, n.holder_radius))))
+
+    def layout_words(self) -> str:
+        """The layout in words with its rotary letters: ``table-table A/C``, ``head-head B/C``, ``three-axis``."""
+        k = self.kinematics
+        return k.layout if not k.rotary else f"{k.layout} {self.axes.tilt}/{self.axes.rotate}"
+
+    def printing_direction_bound_deg(self) -> float | None:
+        """The largest angle (deg) between the printing direction and +z the machine prints (three-axis: the
+        head's clearance), None where the head tilts (five axes)."""
+        return None if self.kinematics.rotary else float(self.kinematics.clearance_deg)
 
 
 def _validate(data: dict | None, where: str | Path) -> MachineProfile:

@@ -108,6 +108,21 @@ class LossConfig(BaseModel):
         "solid (its penalties are quadratic, so a settled field's platform shortfall falls about as 1/weight; the "
         "200 mm bunny's first print, with the platform turn: weight 1 left 43,462 colliding waypoints, 10 left 4,765, "
         "and the clean print kept 72 % of the overhang reduction)")
+    gc_vertical_head: bool = Field(
+        False, description="L_GC places the head along +z at every point instead of along the LPD: a three-axis "
+        "printer's nozzle never tilts (with_tilt_bound sets it for a three-axis machine profile)")
+    tilt_bound_deg: float | None = Field(
+        None, gt=0, lt=90,
+        description="largest angle (deg) between the LPD and +z anywhere in the solid (None: unbounded, five "
+        "axes). The pipeline sets it from a three-axis machine profile's clearance unless it is set here: L_TB "
+        "penalises the excess (w_tb) and the final weights are corrected until no solid cage tet exceeds it")
+    w_tb: float = Field(
+        100.0, ge=0, description="weight of L_TB, the tilt bound's penalty (only with tilt_bound_deg)")
+    tilt_margin_deg: float = Field(
+        0.5, ge=0, description="the final correction aims at LPDs this far (deg) inside tilt_bound_deg")
+    tilt_correction_steps: int = Field(
+        200, ge=0, description="max correction steps of the final weights until no solid cage tet's LPD exceeds "
+        "tilt_bound_deg (checked in float64; 0: the penalty alone)")
 
     correction_steps: int = Field(
         20, ge=0, description="max DC3 correction steps before one loss evaluation (stops when feasible)"
@@ -299,6 +314,16 @@ class NeuralConfig(BaseModel):
         turns axes at the platform by up to platform_turn_deg (``toolpath.collision_tilt_deg``)."""
         loss = self.loss.model_copy(update={"head": nozzle, "head_min_height": max(0.3, float(min_height)),
                                             "gc_platform_turn_deg": float(platform_turn_deg)})
+        return self.model_copy(update={"loss": loss})
+
+    def with_tilt_bound(self, bound_deg: float | None) -> "NeuralConfig":
+        """This config for a machine whose printing direction is bounded to ``bound_deg`` from +z (a three-axis
+        profile's ``printing_direction_bound_deg()``; None: unbounded, this config itself): ``loss.tilt_bound_deg``
+        set to it unless already set, and L_GC's head kept vertical."""
+        if bound_deg is None:
+            return self
+        bound = self.loss.tilt_bound_deg if self.loss.tilt_bound_deg is not None else float(bound_deg)
+        loss = self.loss.model_copy(update={"tilt_bound_deg": bound, "gc_vertical_head": True})
         return self.model_copy(update={"loss": loss})
 
     def for_objectives(self, objectives: list[str]) -> "NeuralConfig":

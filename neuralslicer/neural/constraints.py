@@ -1,4 +1,5 @@
-"""The local collision constraint L_CA = 0 as DC3 corrections of the network weights (paper Sec. 5)."""
+"""The local collision constraint L_CA = 0 (paper Sec. 5) and the tilt bound as DC3 corrections of the network
+weights."""
 from __future__ import annotations
 
 import math
@@ -78,4 +79,20 @@ def enforce_collision_constraint(problem: FieldProblem, fields: DeformationField
             break
         done += 1
         excess64 = problem.collision_excess64(fields)
+    return done
+
+
+def enforce_tilt_bound(problem: FieldProblem, fields: DeformationFields) -> int:
+    """Correct the final weights until no tet of the solid has its LPD beyond ``loss.tilt_bound_deg`` from +z in
+    the float64 field the result stores (at most ``loss.tilt_correction_steps`` steps, each toward LPDs
+    ``loss.tilt_margin_deg`` inside the bound); returns the steps made (0 without a bound)."""
+    cl = problem.config.loss
+    if problem.tilt_bound is None or not len(problem.tilt_tets):
+        return 0
+    done = 0
+    while done < cl.tilt_correction_steps and (problem.tilt_angles64(fields) > cl.tilt_bound_deg).any():
+        target = problem.tilt_violation(fields)
+        if float(target.detach()) <= 0 or not correction_step(fields, target, cl):
+            break
+        done += 1
     return done

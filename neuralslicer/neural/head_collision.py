@@ -30,6 +30,9 @@ query); every ``optim.check_every`` steps they are tested against the current fi
 those near collision (within generous margins) form the active set. Between refreshes only the
 active set is evaluated, so a step costs a few vector operations over the active pairs.
 
+A three-axis printer's head never tilts: with ``vertical`` (``loss.gc_vertical_head``) the head is placed along
++z at every point instead of along ``d_p``, and only the print order ``G`` moves the penalty.
+
 Refinement (:func:`refine_pool`): where the motion planner's exact check finds colliding waypoints that the
 pool missed (struts thinner than its spacing), points of a finer jittered lattice inside the solid are added
 around each colliding waypoint and each point of material it hit. They are printed points and obstacles like
@@ -352,7 +355,8 @@ class HeadCollision:
     them (:func:`link_pairs`, at most max_link_pairs ordered pairs). The loss is normalised by n_base,
     so refinement does not dilute the base pool's penalties. platform_turn (rad): the platform and floor
     terms judge each head with its axis turned toward +z by up to this much, as the motion planner turns axes
-    that would dip below the platform (0: the LPD itself).
+    that would dip below the platform (0: the LPD itself). vertical: the head's axis is +z at every point instead
+    of the LPD (a three-axis printer, whose nozzle never tilts); the print order still follows G.
     """
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, bary: np.ndarray, cage_tets: np.ndarray,
@@ -360,7 +364,7 @@ class HeadCollision:
                  length: float, margin: float, device: torch.device, dtype: torch.dtype, *,
                  n_base: int | None = None, links: np.ndarray | None = None, link_radius: float = 0.0,
                  max_link_pairs: int = 10_000_000, floor: FloorTets | None = None,
-                 floor_weight: float = 1.0, platform_turn: float = 0.0) -> None:
+                 floor_weight: float = 1.0, platform_turn: float = 0.0, vertical: bool = False) -> None:
         self.points = np.asarray(points, np.float64)
         self.n_base = len(self.points) if n_base is None else int(n_base)
         reach = head.reach + clearance + lift + margin
@@ -378,6 +382,7 @@ class HeadCollision:
         self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
         self.platform_clearance = min(clearance, 0.5 * head.cone_length)
         self.platform_turn = float(platform_turn)
+        self.vertical = bool(vertical)
         self.device, self.dtype = device, dtype
         self.tet = np.asarray(tets, np.int64)
         self.vertex_ids = torch.as_tensor(np.asarray(cage_tets, np.int64)[self.tet], device=device)
@@ -398,12 +403,18 @@ class HeadCollision:
         return len(self.points)
 
     def values(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(G at the pool points (k,), unit LPD (k,3), |grad G| (k,)) from G at the cage vertices (n,)
-        and its per-tet gradient (m,3)."""
+        """(G at the pool points (k,), the head's unit axis (k,3): the LPD, or +z for a vertical head, |grad G|
+        (k,)) from G at the cage vertices (n,) and its per-tet gradient (m,3)."""
         g = (self.bary_t * G[self.vertex_ids]).sum(dim=1)
         d = grad[self.tet_t]
         norm = d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        return g, d / norm, norm[:, 0]
+        return g, self._axis(d / norm), norm[:, 0]
+
+    def _axis(self, lpd: torch.Tensor) -> torch.Tensor:
+        """The head's axis (k,3) at points with these unit LPDs (k,3): themselves, or +z for a vertical head."""
+        if not self.vertical:
+            return lpd
+        return torch.tensor([0.0, 0.0, 1.0], dtype=lpd.dtype, device=lpd.device).expand_as(lpd)
 
     def _depth(self, pairs: torch.Tensor, d: torch.Tensor, inflate: float, lift: float) -> torch.Tensor:
         """Depth of x in the head at p, grown by inflate and lifted by lift along d_p, per pair (p, x)."""
@@ -448,7 +459,8 @@ class HeadCollision:
         """Height above the platform (mm) of the head's lowest rim at the lowest solid point of each floor tet,
         along that tet's LPD (f,): negative where the head reaches below the platform there."""
         d = grad[self.floor_tets]
-        return self.floor_z + self.head.lowest(d / d.norm(dim=1, keepdim=True).clamp_min(1e-12), self.platform_turn)
+        return self.floor_z + self.head.lowest(self._axis(d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)),
+                                               self.platform_turn)
 
     def penalties(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(per active pair c(p, x) (a,), per platform candidate penalty (b,): pool points, then floor tets

@@ -9,6 +9,8 @@ All functions take torch tensors and are differentiable w.r.t. the LPDs / networ
 - ``L_HS = sum_pairs w_ij |s_i - s_j|^2 / sum_pairs w_ij``, ``w_ij = (|V_i| + |V_j|) / 2``
 - ``L_HQ = sum_pairs w_ij (1 - q_i.q_j)^2 / sum_pairs w_ij`` (q unit)
 - ``L_CA`` (see :func:`collision_loss`), mean over adjacent tet pairs.
+- ``L_TB = sum_e |V_e| relu((cos b - d_z) / (1 - cos b))^2 / sum_e |V_e|`` (see :func:`tilt_bound_loss`): the
+  LPD within ``b`` of +z, as a three-axis printer's vertical nozzle needs.
 """
 from __future__ import annotations
 
@@ -113,3 +115,24 @@ def collision_loss(
     if pairs.numel() == 0:
         return gradients.new_zeros(())
     return torch.relu(collision_excess(gradients, pairs, face_normals, phi)).mean()
+
+
+def tilt_excess(directions: torch.Tensor, bound: float) -> torch.Tensor:
+    """``cos(bound) - d_z`` per direction (n,) for any non-zero vectors (n,3) (normalised here, d = v / |v|);
+    > 0 where the direction is more than ``bound`` (rad) from +z."""
+    d_z = directions[:, 2] / directions.norm(dim=1).clamp_min(1e-12)
+    return math.cos(bound) - d_z
+
+
+def tilt_bound_loss(directions: torch.Tensor, weights: torch.Tensor, bound: float) -> torch.Tensor:
+    """L_TB: ``sum w relu((cos b - d_z) / (1 - cos b))^2 / sum w`` for directions (n,3) (LPDs or gradients of G,
+    normalised here), weights (n,) (cage tet volumes) and the bound ``b`` (rad, 0 < b <= pi).
+
+    Zero while every direction is within ``b`` of +z; the excess is measured in units of ``1 - cos b`` (the
+    cosine's range inside the bound), so 1 is a direction as far outside the bound as +z is inside it, whatever
+    the bound.
+    """
+    if directions.numel() == 0:
+        return weights.new_zeros(())
+    scale = max(1.0 - math.cos(bound), 1e-12)
+    return _normalised_sum(torch.relu(tilt_excess(directions, bound) / scale) ** 2, weights)

@@ -21,21 +21,24 @@ from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from neuralslicer.errors import InputError
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.neural import losses as L
 from neuralslicer.neural.config import NeuralConfig
-from neuralslicer.neural.constraints import corrected_evaluation, enforce_collision_constraint, violating_pairs
+from neuralslicer.neural.constraints import (corrected_evaluation, enforce_collision_constraint, enforce_tilt_bound,
+                                             violating_pairs)
 from neuralslicer.neural.device import device_record
 from neuralslicer.model.solid import Solid
 from neuralslicer.neural.head_collision import CollisionPool, collision_pool, refine_pool
 from neuralslicer.neural.initial_guess import heat_geodesic, height_matched, platform_vertices, user_field_on_cage
 from neuralslicer.neural.networks import DeformationFields
-from neuralslicer.neural.problem import FieldProblem
+from neuralslicer.neural.problem import FieldProblem, tilt_angles_deg
 from neuralslicer.samples import SurfaceSamples
+from neuralslicer.tetmesh import TetLocator
 
-TERMS = ("sf", "sr", "po", "hs", "hq", "gc", "ca")
+TERMS = ("sf", "sr", "po", "hs", "hq", "gc", "ca")  # every run's terms; "tb" too with a tilt bound
 WEIGHTS = "weights"  # the group of the network weights in FieldResult.to_arrays
 CHECKPOINT_VERSION = 2  # 2: tensors and plain values only (weights_only loading)
 ProgressFn = Callable[[int, dict], None]
@@ -143,6 +146,8 @@ class LoopState:
     final_corrections: int = 0
     pretrain_history: np.ndarray = field(default_factory=lambda: np.zeros(0))
     grad_scale: float | None = None
+    #: correction steps of the final weights toward the tilt bound (loss.tilt_bound_deg)
+    tilt_corrections: int = 0
     #: (step, overhang fraction of B, pool points whose head hits) every optim.progress_every steps near the
     #: progress stall test's window
     progress: list[tuple[int, float, int]] = field(default_factory=list)
@@ -154,7 +159,8 @@ class LoopState:
         """Seeded fresh networks, Adam and scheduler, empty history."""
         seed_everything(problem.config.optim.seed)
         fields = problem.new_fields()
-        return cls(fields, *new_optimizer(fields, problem.config), {k: [] for k in ("total", *TERMS, "corrections", "lr")})
+        return cls(fields, *new_optimizer(fields, problem.config),
+                   {k: [] for k in ("total", *problem.terms(), "corrections", "lr")})
 
     def to_bytes(self, config: NeuralConfig) -> bytes:
         """The complete state (with the RNG states) as a checkpoint."""
@@ -163,7 +169,8 @@ class LoopState:
             "version": CHECKPOINT_VERSION, "fields": self.fields.state_dict(),
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "step": self.step, "converged": self.converged, "history": self.history,
-            "final_corrections": self.final_corrections, "best": self.best_state, "rollbacks": self.rollbacks,
+            "final_corrections": self.final_corrections, "tilt_corrections": self.tilt_corrections,
+            "best": self.best_state, "rollbacks": self.rollbacks,
             "trend": self.trend, "pretrain_history": torch.from_numpy(np.asarray(self.pretrain_history, np.float64)),
             "rng": _rng_state(),
             "grad_scale": self.grad_scale,
@@ -187,6 +194,7 @@ class LoopState:
         self.scheduler.load_state_dict(state["scheduler"])
         self.step, self.converged = int(state["step"]), bool(state["converged"])
         self.final_corrections = int(state.get("final_corrections", 0))
+        self.tilt_corrections = int(state.get("tilt_corrections", 0))
         self.best_state, self.rollbacks = state.get("best"), int(state.get("rollbacks", 0))
         self.trend = list(state.get("trend", []))
         self.history = {k: list(v) for k, v in state["history"].items()}
@@ -418,11 +426,26 @@ def optimise_field(
         run_loop(problem, st, save, progress, t0)
         if config.optim.return_best and st.best_state is not None:
             st.fields.load_state_dict(st.best_state["fields"])
-        if config.loss.collision:
-            # the hard constraint holds for the field that is returned, not only before each step
-            st.final_corrections += enforce_collision_constraint(problem, st.fields)
+        final_corrections(problem, st)
         save()
         return field_result(problem, st, t0)
+
+
+def final_corrections(problem: FieldProblem, st: LoopState, rounds: int = 3) -> None:
+    """Correct the final weights: the hard constraint L_CA = 0 holds for the field that is returned, not only
+    before each step; with a tilt bound, no solid tet's LPD beyond it either (the two in turn, up to ``rounds``
+    times, until both hold)."""
+    cl = problem.config.loss
+    if problem.tilt_bound is None:
+        if cl.collision:
+            st.final_corrections += enforce_collision_constraint(problem, st.fields)
+        return
+    for _ in range(rounds):
+        st.tilt_corrections += enforce_tilt_bound(problem, st.fields)
+        if cl.collision:
+            st.final_corrections += enforce_collision_constraint(problem, st.fields)
+        if not (problem.tilt_angles64(st.fields) > cl.tilt_bound_deg).any():
+            break
 
 
 def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
@@ -467,14 +490,37 @@ def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.nd
         cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"max_steps": steps,
                                                                               "lr": rc.lr or cfg.optim.lr})})
         options["warm_start"] = warm_start
-    if pool is not None:
+    if pool is not None or cfg.loss.tilt_bound_deg is not None:
         options["solid_tets"] = solid_tets(solid, cage_vertices, cage_tets)
     result = optimise_field(cage_vertices, cage_tets, samples, stress, config=cfg, platform_z=solid.platform_z,
                             collision_pool=pool, **options)
     result.attrs.update(objectives=list(objectives), kind="neural")
+    if cfg.loss.tilt_bound_deg is not None:
+        held = heldout_tilt(solid, cage_vertices, cage_tets, result.lpd, cfg.loss.tilt_bound_deg, cfg.optim.seed)
+        result.attrs["tilt_bound"].update(held)
+        result.final["tilt_bound_violation_frac"] = held["heldout_violation_fraction"]
     if record is not None:
         result.attrs["refinement"] = record
     return result
+
+
+def heldout_tilt(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.ndarray, lpd: np.ndarray, bound_deg: float,
+                 seed: int = 0, n_points: int = 20_000) -> dict[str, float]:
+    """The tilt of a field's LPD (m,3) per cage tet at held-out points of the solid (a jittered grid of about
+    ``n_points`` inside ``H < 0``, drawn apart from L_GC's pool): the fraction beyond ``bound_deg`` from +z, the
+    largest angle and its 99th percentile (deg), as ``heldout_*``."""
+    points = collision_pool(solid.H, solid.bounds, solid.volume(), np.zeros((0, 3)), n_points,
+                            seed=seed + 1_000_003).points
+    V, T = np.asarray(cage_vertices, np.float64), np.asarray(cage_tets, np.int64)
+    tet, _ = TetLocator(V, T).locate(points)
+    outside = tet < 0
+    if outside.any():  # the cage encloses the solid; a point on its boundary takes the nearest tet
+        tet[outside] = cKDTree(V[T].mean(axis=1)).query(points[outside])[1]
+    angles = tilt_angles_deg(np.asarray(lpd, np.float64)[tet])
+    if not len(angles):
+        return {"heldout_points": 0, "heldout_violation_fraction": 0.0, "heldout_max_deg": 0.0, "heldout_p99_deg": 0.0}
+    return {"heldout_points": int(len(angles)), "heldout_violation_fraction": float(np.mean(angles > bound_deg)),
+            "heldout_max_deg": float(angles.max()), "heldout_p99_deg": float(np.percentile(angles, 99))}
 
 
 def solid_tets(solid: Solid, vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -523,7 +569,7 @@ def iterate(problem: FieldProblem, st: LoopState, first: bool) -> int | None:
     take_step(st, oc, total, tv)
     st.step += 1
     st.history["total"].append(tv)
-    for k in TERMS:
+    for k in problem.terms():
         st.history[k].append(float(terms[k].detach()))
     st.history["corrections"].append(float(n_corr))
     st.history["lr"].append(st.lr)
@@ -632,6 +678,24 @@ def deterministic_algorithms() -> Iterator[None]:
 
 
 
+def tilt_record(problem: FieldProblem, st: LoopState, grad: np.ndarray) -> dict:
+    """The tilt bound as the result holds it (empty without one): the solid cage tets whose LPD (grad G per tet
+    (m,3), float64) is beyond it, their volume fraction, the largest angle from +z and its 99th percentile (deg,
+    over the tets), the final corrections made."""
+    if problem.tilt_bound is None:
+        return {}
+    bound = problem.config.loss.tilt_bound_deg
+    idx = problem.tilt_tets
+    angles = tilt_angles_deg(grad[idx])
+    volumes = problem.geometry.volumes[idx]
+    over = angles > bound
+    return {"bound_deg": bound, "tets": int(len(idx)), "violating_tets": int(over.sum()),
+            "violating_volume_fraction": float(volumes[over].sum() / max(volumes.sum(), 1e-300)),
+            "max_deg": float(angles.max()) if len(angles) else 0.0,
+            "p99_deg": float(np.percentile(angles, 99)) if len(angles) else 0.0,
+            "corrections": st.tilt_corrections}
+
+
 def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult:
     """The result: the float64 deformation of the final weights, the stored field's L_CA and L_GC,
     satisfaction against planar layers, the history and the run's record."""
@@ -663,6 +727,9 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
     if problem.config.loss.collision:  # the constraint as stored: the float64 field, pairs counted
         final["ca"] = collision["ca"]
         final["ca_violating_pairs"] = float(n_viol)
+    tilt = tilt_record(problem, st, gradG)
+    if tilt:
+        final["tb_violating_tets"] = float(tilt["violating_tets"])
     head = problem.head_collisions(G)
     if head:
         final["gc_colliding_pairs"] = float(head["colliding_pairs"])
@@ -679,7 +746,7 @@ def field_result(problem: FieldProblem, st: LoopState, t0: float) -> FieldResult
         attrs={"config": problem.config.model_dump(mode="json"), "seed": problem.config.optim.seed,
                "solver_backend": problem.arap.backend, **device_record(problem.device),
                "po_length": problem.po_length, "schema_version": 1, "collision": collision,
-               "head_collision": head,
+               "head_collision": head, **({"tilt_bound": tilt} if tilt else {}),
                "rollbacks": st.rollbacks, "stalled_progress": st.stop == "progress", "stop": st.stop,
                "progress": [{"step": r[0], "overhang": r[1], "head_hits": r[2]} for r in st.progress],
                "best_step": None if st.best_state is None else int(st.best_state["step"]) + 1},

@@ -80,6 +80,7 @@ class FieldProblem:
         self.t_tau_t = T(self.t_tau)
         self.t_volumes_t = T(self.t_volumes)
         self.head = self._head_collision(collision_pool, solid_tets)
+        self._tilt_set(solid_tets)
         #: what the last constraint check measured (overhang, its target, pool points whose head hits), for progress
         self.last_check: dict[str, float] = {}
         #: the constraint stop accepts at least this overhang fraction (a warm start's own, see optimise_field)
@@ -108,7 +109,30 @@ class FieldProblem:
                              cl.gc_front_margin, pool.spacing, 0.5 * pool.spacing, self.device, self.dtype,
                              n_base=pool.n_base, links=pool.links, link_radius=pool.link_radius,
                              max_link_pairs=self.config.optim.refine.max_pairs, floor=floor,
-                             floor_weight=cl.gc_floor_weight, platform_turn=math.radians(cl.gc_platform_turn_deg))
+                             floor_weight=cl.gc_floor_weight, platform_turn=math.radians(cl.gc_platform_turn_deg),
+                             vertical=cl.gc_vertical_head)
+
+    def _tilt_set(self, solid_tets: np.ndarray | None) -> None:
+        """The cage tets where the tilt bound holds (the solid: ``solid_tets`` with the tets holding B, T or L_GC's
+        pool points) and their volumes, the weights of L_TB; none without a bound."""
+        g = self.geometry
+        self.tilt_bound = (math.radians(self.config.loss.tilt_bound_deg)
+                           if self.config.loss.tilt_bound_deg is not None else None)
+        solid = np.zeros(len(g.tets), bool)
+        if self.tilt_bound is not None:
+            if solid_tets is not None:
+                solid |= np.asarray(solid_tets, bool)
+            pool = self.head.tet if self.head is not None else np.zeros(0, np.int64)
+            for tets in (self.b_tet, self.b_platform_tet, self.t_tet, pool):
+                solid[tets[tets >= 0]] = True
+        self.tilt_tets = np.flatnonzero(solid)
+        self.tilt_tets_t = torch.as_tensor(self.tilt_tets, dtype=torch.int64, device=self.device)
+        self.tilt_weights_t = torch.as_tensor(g.volumes[self.tilt_tets], dtype=self.dtype, device=self.device)
+
+    def terms(self) -> tuple[str, ...]:
+        """The loss terms this problem evaluates (the history's keys): L_TB only with a tilt bound."""
+        base = ("sf", "sr", "po", "hs", "hq", "gc", "ca")
+        return base + ("tb",) if self.tilt_bound is not None else base
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
         """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
@@ -174,7 +198,29 @@ class FieldProblem:
             terms["ca"] = zero
         total = (cl.w_sf * terms["sf"] + cl.w_sr * terms["sr"] + cl.w_po * terms["po"]
                  + cl.w_hs * terms["hs"] + cl.w_hq * terms["hq"] + cl.w_gc * terms["gc"])
+        if self.tilt_bound is not None:
+            terms["tb"] = L.tilt_bound_loss(grad[self.tilt_tets_t], self.tilt_weights_t, self.tilt_bound)
+            total = total + cl.w_tb * terms["tb"]
         return total, terms, excess
+
+    def tilt_violation(self, fields: DeformationFields) -> torch.Tensor:
+        """``sum |V_e| relu(cos(b - margin) - d_z) / sum |V_e|`` over the tilt set, with its graph: zero iff every
+        solid tet's LPD is at least ``loss.tilt_margin_deg`` inside the bound b (the final correction's target)."""
+        G, _, _ = self.height(fields)
+        grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+        bound = max(self.tilt_bound - math.radians(self.config.loss.tilt_margin_deg), 0.0)
+        x = torch.relu(L.tilt_excess(grad[self.tilt_tets_t], bound))
+        return (x * self.tilt_weights_t).sum() / self.tilt_weights_t.sum().clamp_min(1e-300)
+
+    def tilt_angles64(self, fields: DeformationFields) -> np.ndarray:
+        """Angle (deg) between +z and the LPD of each tet of the tilt set, in the float64 field the result
+        stores."""
+        with torch.no_grad():
+            q, s = fields(self.centroids_t)
+            G = self.arap.deformed_height(q.double(), s.double()).cpu().numpy()
+        g = self.geometry
+        grad = np.einsum("ei,eij->ej", G[g.tets[self.tilt_tets]], g.bary_grads[self.tilt_tets])
+        return tilt_angles_deg(grad)
 
     def collision_excess(self, fields: DeformationFields) -> torch.Tensor:
         """Per-pair collision excess angle (rad, > 0 violates) in the working dtype, with its graph."""
@@ -265,3 +311,11 @@ class FieldProblem:
         if len(self.t_tet):
             out["sr_satisfied_fraction"] = strength_satisfaction(self.t_tau, self.t_volumes, lpd[self.t_tet], cl.beta_deg)
         return out
+
+
+def tilt_angles_deg(directions: np.ndarray) -> np.ndarray:
+    """Angle (deg) between +z and each direction (n,3) (any length; a zero vector counts as 180)."""
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(d, axis=1)
+    cos = np.where(norm > 0, d[:, 2] / np.maximum(norm, 1e-300), -1.0)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -7,7 +7,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from neuralslicer.errors import InputError
+from neuralslicer.errors import InputError, error_key, unknown_key_message
 
 
 class ToolpathConfig(BaseModel):
@@ -103,6 +103,8 @@ def toolpath_config_from_dict(data: dict | None, where: str | Path = "toolpath")
     try:
         return ToolpathConfig.model_validate(data or {})
     except ValidationError as err:
-        first = err.errors()[0]
-        key = ".".join(str(p) for p in first["loc"])
-        raise InputError(where, f"{key}: {first['msg']}") from None
+        errors = err.errors()
+        unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+        first = (unknown or errors)[0]
+        msg = unknown_key_message(ToolpathConfig, first["loc"]) if unknown else first["msg"]
+        raise InputError(where, f"{error_key(ToolpathConfig, first['loc'])}: {msg}") from None

@@ -568,6 +568,7 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
     below: TriangleSet | None = None
     cur = None
     path_id = n_loops = 0
+    path_kinds: list[str] = []                     # one digit per path id: SHELL, INFILL or STRESS
     layer_patches = [_layer_patches(layer, li, cfg) if len(layer.faces) else ([], 0) for li, layer in enumerate(layers)]
     n_patches = sum(len(p) for p, _ in layer_patches)
     n_skipped = sum(k for _, k in layer_patches)
@@ -596,6 +597,7 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
             thick = layer_thickness(xyz, ax, below, platform_z, cfg.thickness_cap_factor * t_max, t_max)
             start = len(cols.cols["xyz"])
             cur, path_id = _emit_layer(cols, li, ordered, thick, cur, path_id, cfg)
+            path_kinds.extend(str(p.kind) for p in ordered)
             cols.end_layer(start)
         below = TriangleSet(np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64))
     if not cols.cols["xyz"]:
@@ -606,7 +608,8 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
     tp.attrs = {"config": cfg.model_dump(), "t_max": float(t_max), "platform_z": float(platform_z),
                 "n_input_layers": len(layers),
                 "isovalues": [None if v is None else float(v) for v in isovalues],
-                "n_paths": int(path_id), "n_patches": n_patches, "n_patches_skipped": n_skipped}
+                "n_paths": int(path_id), "n_patches": n_patches, "n_patches_skipped": n_skipped,
+                "path_kinds": "".join(path_kinds)}
     if cfg.infill == "stress":
         total = infill_mm[INFILL] + infill_mm[STRESS]
         tp.attrs["stress_infill_fraction"] = infill_mm[STRESS] / total if total > 0 else 0.0

@@ -1,0 +1,340 @@
+"""What the preview shows of a machine program: its moves back-plotted in the part frame, their colours, decimated.
+
+The tool tip and tool axis of every move come from the program's machine coordinates through the profile's forward
+kinematics (``MachineProgram.forward``), so the page shows what the machine will do, not what the planner meant.
+Retract and prime moves (the extruder alone) are left out. The rest is simplified as a polyline in the manner of
+Douglas and Peucker: the first and last move of every run of one kind on one layer and the colliding moves are kept;
+then, round by round, every stretch between kept moves farther than ``FLOOR_MM`` from its chord is split at its
+farthest move and at its middle one (which keeps the rounds few), each taking its distance from the chord as its
+significance. The page keeps the most significant moves, then repairs what that misjudged (the farthest move of every
+stretch still far from its chord, the farthest first) up to ``max_points``, and says how far the moves left out lie
+from the lines drawn. A kept move stands for the moves merged into it: its feed is their length over their time, its
+bead width their length-weighted mean. Coarser nested levels (each the most significant half of the one before, the
+last within the draw budget; or every other layer where the runs' ends alone are too many) let a view of many layers
+draw few moves and a view of a few layers every kept one.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from neuralslicer.motion.planning import RETRACT, MachineProgram
+from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS
+from neuralslicer.types import BoolArray, FloatArray, IndexArray
+
+#: at most this many coarser levels
+MAX_LEVELS = 8
+#: at most one in this many kept moves is marked as colliding (a sample of them where more collide)
+MARKED_SHARE = 4
+#: moves within this distance (mm) of the lines drawn are always left out
+FLOOR_MM = 0.01
+#: at most this many rounds of the simplification (each splits every stretch still farther than the floor once)
+MAX_ROUNDS = 64
+#: the share of ``max_points`` left to the repair (:func:`repaired`), and its rounds
+REPAIR_SHARE, REPAIR_ROUNDS = 0.15, 8
+
+
+@dataclass
+class MoveAttributes:
+    """Per-move values of a program, in execution order (n moves).
+
+    tip, axis : (n, 3) float64 tool tip and unit tool axis in the part (build) frame, by forward kinematics;
+    kind : (n,) int8 TRAVEL/PRINT/RETRACT; layer : (n,) int64; time_s : (n,) planned duration;
+    length_mm : (n,) length of the move arriving at each pose (0 for the first); width_mm : (n,) bead width of the
+    toolpath waypoint the move belongs to; tilt_deg : (n,) angle of the tool axis from +z.
+    """
+
+    tip: FloatArray
+    axis: FloatArray
+    kind: np.ndarray
+    layer: IndexArray
+    time_s: FloatArray
+    length_mm: FloatArray
+    width_mm: FloatArray
+    tilt_deg: FloatArray
+
+
+@dataclass
+class PreviewData:
+    """The moves a preview draws (k kept of ``n_moves``), in execution order.
+
+    move : (k,) int64 index of each kept move in the program; tip, axis : (k, 3) float64; layer : (k,) int64; kind :
+    (k,) int8; tilt_deg, feed_mm_s, width_mm : (k,) float64 (feed and width over the merged moves); level : (k,)
+    uint8 the coarsest detail level each kept move is drawn at (:func:`detail_levels`); collisions : (c,) int64
+    indices into the kept moves of those whose head collides; max_deviation_mm, mean_deviation_mm: how far the moves
+    left out lie from the drawn lines; n_moves, n_drawable: the program's moves, and those that move the tip
+    (retractions left out); draw_budget: the most moves one view draws; n_collided: the colliding moves
+    (``collisions`` marks them all, or an even sample of ``max_points / MARKED_SHARE`` where there are more).
+    """
+
+    move: IndexArray
+    tip: FloatArray
+    axis: FloatArray
+    layer: IndexArray
+    kind: np.ndarray
+    tilt_deg: FloatArray
+    feed_mm_s: FloatArray
+    width_mm: FloatArray
+    level: np.ndarray
+    collisions: IndexArray
+    max_deviation_mm: float
+    mean_deviation_mm: float
+    n_moves: int
+    n_drawable: int
+    draw_budget: int = DEFAULT_DRAW_BUDGET
+    n_collided: int = 0
+
+    def __len__(self) -> int:
+        """Number of kept moves."""
+        return int(len(self.move))
+
+    @property
+    def factor(self) -> float:
+        """Decimation factor: drawable moves per kept move (1 when nothing is left out)."""
+        return self.n_drawable / max(len(self), 1)
+
+    def summary(self) -> dict[str, float | int]:
+        """JSON-able figures of the decimation."""
+        return {"n_moves": self.n_moves, "n_drawable": self.n_drawable, "n_drawn": len(self),
+                "factor": round(self.factor, 3), "max_deviation_mm": round(self.max_deviation_mm, 4),
+                "mean_deviation_mm": round(self.mean_deviation_mm, 5), "n_collisions": int(len(self.collisions)),
+                "n_collided": self.n_collided,
+                "draw_budget": self.draw_budget, "levels": [int((self.level >= v).sum()) for v in
+                                                            range(int(self.level.max(initial=0)) + 1)]}
+
+
+def waypoint_values(source: IndexArray, values: FloatArray) -> FloatArray:
+    """Per-move value (n,) of the toolpath waypoint each move belongs to: its own ``source`` or, for inserted moves
+    (source -1: rotary splits, retract/prime, the approach), the next move's waypoint (the last one's for the end)."""
+    n = len(source)
+    if n == 0 or len(values) == 0:
+        return np.zeros(n)
+    pos = np.flatnonzero(source >= 0)
+    if len(pos) == 0:
+        return np.zeros(n)
+    nxt = np.searchsorted(pos, np.arange(n))          # the first move at or after each one with a waypoint
+    return np.asarray(values, np.float64)[source[pos[np.minimum(nxt, len(pos) - 1)]]]
+
+
+def move_attributes(program: MachineProgram, widths: FloatArray) -> MoveAttributes:
+    """Every move's tip and axis by forward kinematics, and its length, bead width and tilt (``widths``: (w,) the
+    toolpaths' width per waypoint)."""
+    tip, axis = program.forward()
+    tip, axis = np.asarray(tip, np.float64), np.asarray(axis, np.float64)
+    length = np.zeros(len(tip))
+    if len(tip) > 1:
+        length[1:] = np.linalg.norm(np.diff(tip, axis=0), axis=1)
+    tilt = np.degrees(np.arccos(np.clip(axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-300), -1.0, 1.0)))
+    return MoveAttributes(tip, axis, np.asarray(program.kind, np.int8), np.asarray(program.layer, np.int64),
+                          np.asarray(program.time_s, np.float64), length,
+                          waypoint_values(np.asarray(program.source, np.int64), widths), tilt)
+
+
+def colliding_moves(source: IndexArray, waypoints: IndexArray) -> IndexArray:
+    """Indices of the moves (sorted) that reach the colliding toolpath waypoints ``waypoints``."""
+    hit = np.asarray(waypoints, np.int64)
+    if len(hit) == 0 or len(source) == 0:
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.isin(source, hit))
+
+
+def run_ends(kind: np.ndarray, layer: IndexArray) -> BoolArray:
+    """Moves (m,) that start or end a run of one kind on one layer."""
+    m = len(kind)
+    ends = np.zeros(m, bool)
+    if m:
+        ends[0] = ends[-1] = True
+        change = (kind[1:] != kind[:-1]) | (layer[1:] != layer[:-1])
+        ends[1:] |= change
+        ends[:-1] |= change
+    return ends
+
+
+def deviations(tip: FloatArray, keep: BoolArray) -> FloatArray:
+    """Distance (m,) of every point from the segment between the kept points around it (0 at kept points)."""
+    m = len(tip)
+    idx = np.arange(m)
+    prev = np.maximum.accumulate(np.where(keep, idx, 0))
+    nxt = np.minimum.accumulate(np.where(keep, idx, m - 1)[::-1])[::-1]
+    a, b = tip[prev], tip[nxt]
+    ab = b - a
+    t = np.einsum("ij,ij->i", tip - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
+    closest = a + np.clip(t, 0.0, 1.0)[:, None] * ab
+    return np.linalg.norm(tip - closest, axis=1)
+
+
+def _merged(cum: FloatArray, kept: IndexArray) -> FloatArray:
+    """Sum over the moves merged into each kept point: ``cum`` (a cumulative sum over the points) between the
+    previous kept point and this one (the first: its own value)."""
+    out = np.empty(len(kept))
+    if len(kept):
+        out[0] = cum[kept[0]] - (cum[kept[0] - 1] if kept[0] > 0 else 0.0)
+        out[1:] = np.diff(cum[kept])
+    return out
+
+
+def _distances(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Distance (k,) of points ``p`` from the segments ``a``-``b`` (each (k, 3))."""
+    ab = b - a
+    t = np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
+    return np.linalg.norm(p - (a + np.clip(t, 0.0, 1.0)[:, None] * ab), axis=1)
+
+
+def farthest_per_stretch(tip: FloatArray, keep: BoolArray, candidates: IndexArray
+                         ) -> tuple[IndexArray, FloatArray, IndexArray, FloatArray, IndexArray]:
+    """For each stretch between consecutive kept points holding some of ``candidates`` (sorted, none kept): its
+    candidate farthest from the stretch's chord and that distance, its middle candidate and that one's distance; and
+    the stretch (0, 1, ...) of every candidate."""
+    m = len(tip)
+    idx = np.arange(m)
+    prev = np.maximum.accumulate(np.where(keep, idx, 0))
+    nxt = np.minimum.accumulate(np.where(keep, idx, m - 1)[::-1])[::-1]
+    start = prev[candidates]
+    d = _distances(tip[candidates], tip[start], tip[nxt[candidates]])
+    new = np.r_[True, start[1:] != start[:-1]]
+    first = np.flatnonzero(new)
+    stretch = np.cumsum(new) - 1
+    far = np.maximum.reduceat(d, first)
+    at = np.flatnonzero(d == far[stretch])
+    at = at[np.r_[True, stretch[at][1:] != stretch[at][:-1]]]       # the first farthest of each stretch
+    mid = first + np.diff(np.r_[first, len(candidates)]) // 2
+    return candidates[at], far, candidates[mid], d[mid], stretch
+
+
+def significance(tip: FloatArray, fixed: BoolArray, floor_mm: float = FLOOR_MM, max_rounds: int = MAX_ROUNDS
+                 ) -> FloatArray:
+    """How much each point of a polyline matters (m,): inf for the ``fixed`` ones and its ends; else its distance
+    from the chord of the stretch it split when the simplification (see the module) took it; 0 for those it left
+    within ``floor_mm`` of the lines."""
+    m = len(tip)
+    sig = np.zeros(m)
+    keep = fixed.copy()
+    if m:
+        keep[0] = keep[-1] = True
+    sig[keep] = np.inf
+    open_ = np.flatnonzero(~keep)                        # points of stretches still farther than the floor
+    for _ in range(max_rounds):
+        if not len(open_):
+            break
+        far_pts, far, mid_pts, mid, stretch = farthest_per_stretch(tip, keep, open_)
+        split = far > floor_mm
+        open_ = open_[split[stretch]]
+        for pts, dist in ((mid_pts[split], mid[split]), (far_pts[split], far[split])):
+            sig[pts] = np.maximum(dist, np.finfo(float).tiny)
+            keep[pts] = True
+        open_ = open_[~keep[open_]]
+    return sig
+
+
+def most_significant(sig: FloatArray, budget: int) -> BoolArray:
+    """The points to keep (m,): every one of infinite significance, and of the others (significance > 0) the most
+    significant while at most ``budget`` are kept in all."""
+    keep = np.isinf(sig)
+    rest = np.flatnonzero((sig > 0) & ~keep)
+    room = budget - int(keep.sum())
+    if room >= len(rest):
+        keep[rest] = True
+    elif room > 0:
+        keep[rest[np.argpartition(-sig[rest], room - 1)[:room]]] = True
+    return keep
+
+
+def repaired(tip: FloatArray, sig: FloatArray, keep: BoolArray, max_points: int, floor_mm: float = FLOOR_MM,
+             rounds: int = REPAIR_ROUNDS) -> BoolArray:
+    """``keep`` with, round by round, the farthest point of every stretch between kept points farther than
+    ``floor_mm`` from its chord added (the farthest stretches first), while at most ``max_points`` are kept: what
+    the significance misjudged (a point taken early against a chord that the threshold dropped). Raises ``sig`` of the
+    points added to their distance (in place), so that the coarser levels rank them by it."""
+    keep = keep.copy()
+    for _ in range(rounds):
+        room = max_points - int(keep.sum())
+        open_ = np.flatnonzero(~keep)
+        if room <= 0 or not len(open_):
+            break
+        pts, far, _, _, _ = farthest_per_stretch(tip, keep, open_)
+        pts, far = pts[far > floor_mm], far[far > floor_mm]
+        if len(pts) > room:
+            top = np.argpartition(-far, room - 1)[:room]
+            pts, far = pts[top], far[top]
+        if not len(pts):
+            break
+        keep[pts] = True
+        sig[pts] = np.maximum(sig[pts], far)
+    return keep
+
+
+def every_other_layer(layer: IndexArray) -> BoolArray:
+    """Points (m,) on every other layer of those present, counted from the last one down (the top stays)."""
+    present = np.unique(layer)
+    kept = present[::-1][::2]
+    return np.isin(layer, kept)
+
+
+def detail_levels(sig: FloatArray, layer: IndexArray, keep_also: BoolArray, draw_budget: int) -> np.ndarray:
+    """Nested coarser subsets of the kept points, for views that would draw more than ``draw_budget``: (k,) uint8,
+    the coarsest level each point belongs to. Level 0 is the kept points; level l + 1 keeps the most significant half
+    of level l (``sig``: :func:`significance`), or, where the runs' ends alone exceed that, every other layer of level
+    l whole; ``keep_also`` stays in every level; the last level fits ``draw_budget`` (or is the
+    :data:`MAX_LEVELS`-th)."""
+    level = np.zeros(len(sig), np.uint8)
+    current = np.ones(len(sig), bool)
+    while current.sum() > draw_budget and level.max() < MAX_LEVELS:
+        size = int(current.sum())
+        if (np.isinf(sig) & current).sum() > 0.75 * size:
+            coarser = current & (every_other_layer(np.where(current, layer, -1)) | keep_also)
+        else:
+            coarser = most_significant(np.where(current, sig, 0.0), max(draw_budget, size // 2))
+        if coarser.sum() == size:
+            break
+        current = coarser
+        level[current] += 1
+    return level
+
+
+def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFAULT_MAX_POINTS,
+             draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
+    """The moves to draw (see the module): at most ``max_points`` (more only where the runs' ends and the
+    collisions alone exceed it), with coarser nested levels of at most ``draw_budget`` for wide views."""
+    n = len(attrs.tip)
+    draw = np.flatnonzero(attrs.kind != RETRACT)
+    tip, kind, layer = attrs.tip[draw], attrs.kind[draw], attrs.layer[draw]
+    hit = np.zeros(len(draw), bool)
+    marked = collided[np.isin(collided, draw)]
+    n_collided = len(marked)
+    if n_collided > max_points // MARKED_SHARE:           # a print that hits everywhere: mark a sample, evenly
+        marked = marked[np.linspace(0, n_collided - 1, max_points // MARKED_SHARE).astype(np.int64)]
+    hit[np.searchsorted(draw, marked)] = True
+    sig = significance(tip, run_ends(kind, layer) | hit)
+    keep = repaired(tip, sig, most_significant(sig, int(max_points * (1 - REPAIR_SHARE))), max_points)
+    dev = deviations(tip, keep) if len(tip) else np.zeros(0)
+    kept = np.flatnonzero(keep)
+    moves = draw[kept]
+    length = attrs.length_mm[draw].copy()
+    if len(draw):
+        length[0] = 0.0
+    time = attrs.time_s[draw].copy()
+    if len(draw):
+        time[0] = 0.0
+    span = _merged(np.cumsum(length), kept)
+    dt = _merged(np.cumsum(time), kept)
+    width = _merged(np.cumsum(length * attrs.width_mm[draw]), kept)
+    width = np.divide(width, span, out=attrs.width_mm[moves].copy(), where=span > 1e-12)
+    feed = np.divide(span, dt, out=np.zeros(len(kept)), where=dt > 1e-12)
+    level = detail_levels(sig[kept], layer[kept], hit[kept], draw_budget)
+    return PreviewData(move=moves.astype(np.int64), tip=tip[kept], axis=attrs.axis[moves], layer=layer[kept],
+                       kind=kind[kept], tilt_deg=attrs.tilt_deg[moves], feed_mm_s=feed, width_mm=width,
+                       level=level, collisions=np.flatnonzero(hit[kept]).astype(np.int64),
+                       max_deviation_mm=float(dev.max()) if len(dev) else 0.0,
+                       mean_deviation_mm=float(dev.mean()) if len(dev) else 0.0, n_moves=n, n_drawable=len(draw),
+                       draw_budget=draw_budget, n_collided=n_collided)
+
+
+def preview_data(program: MachineProgram, widths: FloatArray, collided_waypoints: IndexArray,
+                 max_points: int = DEFAULT_MAX_POINTS, draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
+    """The decimated moves of a program to draw: ``widths`` (w,) the toolpaths' bead width per waypoint,
+    ``collided_waypoints`` the toolpath waypoint indices whose head collides (``CollisionReport.indices``)."""
+    attrs = move_attributes(program, widths)
+    return decimate(attrs, colliding_moves(np.asarray(program.source, np.int64), collided_waypoints), max_points,
+                    draw_budget)
+
