@@ -9,7 +9,7 @@ from pydantic import BaseModel, Field, ValidationError
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import CageConfig
-from neuralslicer.errors import InputError, error_key, unknown_key_message
+from neuralslicer.errors import InputError, validation_error_line
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.neural.config import NeuralConfig
@@ -109,9 +109,5 @@ class SliceConfig(BaseModel):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            errors = exc.errors()
-            unknown = [e for e in errors if e["type"] == "extra_forbidden"]
-            err = (unknown or errors)[0]             # a union's other members only say "not a string"
-            key = error_key(cls, err["loc"])
-            msg = unknown_key_message(cls, err["loc"]) if unknown else err["msg"]
+            key, msg = validation_error_line(cls, exc.errors())
             raise InputError(f"{where}: {key}", msg) from None

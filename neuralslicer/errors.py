@@ -76,3 +76,12 @@ def unknown_key_message(model: type, loc: Sequence[str | int]) -> str:
     close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
     hint = f"did you mean {close[0]!r}?" if close else f"valid keys: {', '.join(valid)}"
     return f"unknown key {key!r} {where}; {hint}"
+
+
+def validation_error_line(model: type, errors: list[dict]) -> tuple[str, str]:
+    """The dotted key and the message of the error to report of a pydantic ``model``'s validation ``errors``: an
+    unknown key first, with its nearest valid name (a union's other members only say "not a string")."""
+    unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+    err = (unknown or errors)[0]
+    msg = unknown_key_message(model, err["loc"]) if unknown else err["msg"]
+    return error_key(model, err["loc"]), msg

@@ -7,7 +7,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from neuralslicer.errors import InputError, error_key, unknown_key_message
+from neuralslicer.errors import InputError, validation_error_line
 
 
 class ToolpathConfig(BaseModel):
@@ -103,8 +103,5 @@ def toolpath_config_from_dict(data: dict | None, where: str | Path = "toolpath")
     try:
         return ToolpathConfig.model_validate(data or {})
     except ValidationError as err:
-        errors = err.errors()
-        unknown = [e for e in errors if e["type"] == "extra_forbidden"]
-        first = (unknown or errors)[0]
-        msg = unknown_key_message(ToolpathConfig, first["loc"]) if unknown else first["msg"]
-        raise InputError(where, f"{error_key(ToolpathConfig, first['loc'])}: {msg}") from None
+        key, msg = validation_error_line(ToolpathConfig, err.errors())
+        raise InputError(where, f"{key}: {msg}") from None
