@@ -27,7 +27,7 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/neuralslicer slice neuralslicer/examples/bracket/model.yaml --out $(DEMO_OUT) --max-steps 200 --verify
-	@echo "demo results in $(DEMO_OUT): report.md, metrics.json, layers/, field.vtu, model.ply, print.gcode"
+	@echo "demo results in $(DEMO_OUT): report.md, metrics.json, layers/, field.vtu, model.ply, print.gcode, preview.html"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
