@@ -6,7 +6,8 @@ from typing import Any
 
 
 def machine_lines(verbose: bool = False) -> list[str]:
-    """``name  layout  description`` of every shipped profile (with ``verbose``, its kinematic values too)."""
+    """``name  layout  dialect: description (nozzle)`` of every shipped profile (with ``verbose``, its kinematic
+    values too)."""
     from neuralslicer.motion.profile import load_profile, profile_names
 
     profiles = [load_profile(name) for name in profile_names()]
@@ -16,7 +17,8 @@ def machine_lines(verbose: bool = False) -> list[str]:
     for p in profiles:
         k = p.kinematics
         tcp = ", TCP" if k.tcp else ""
-        lines.append(f"{p.name:<{width}}  {p.layout_words():<{layout}}  {p.gcode.dialect}{tcp}: {p.description}")
+        lines.append(f"{p.name:<{width}}  {p.layout_words():<{layout}}  {p.gcode.dialect}{tcp}: {p.description} "
+                     f"({p.nozzle.in_words()})")
         if verbose:
             lines.append(f"{'':<{width}}  pivot {list(k.pivot)}, c_offset {list(k.c_offset)}, tool_length "
                          f"{k.tool_length:g}, tilt {k.tilt_min_deg:g}..{k.tilt_max_deg:g} deg, nozzle cone "

@@ -93,27 +93,36 @@ CONFIG_KEYS = {
 }
 
 
+def _set_key(data: dict, keys: tuple[str, ...], value: object) -> None:
+    """``data[k0][k1]... = value``, making the sections that are missing (a section that is not a mapping is left
+    for the validation to name)."""
+    node = data
+    for k in keys[:-1]:
+        if node.get(k) is None:
+            node[k] = {}
+        if not isinstance(node[k], dict):
+            return
+        node = node[k]
+    node[keys[-1]] = value
+
+
 def build_config(options: argparse.Namespace) -> SliceConfig:
     """SliceConfig from --config, overridden by the explicit command-line options, validated."""
     from neuralslicer.config import SliceConfig
 
-    cfg = SliceConfig.from_yaml(options.config) if options.config else SliceConfig()
-    data = cfg.model_dump()
-    for name, keys in CONFIG_KEYS.items():
-        value = getattr(options, name, None)
-        if value is not None:
-            node = data
-            for k in keys[:-1]:
-                node = node[k]
-            node[keys[-1]] = value
+    # the options go into the file's mapping before it is validated: what neither sets comes from the defaults and
+    # the machine profile's nozzle (a --machine with a smaller nozzle brings its layer thickness and line width)
+    data = SliceConfig.read_yaml(options.config) if options.config else {}
+    sets = [(keys, getattr(options, name, None)) for name, keys in CONFIG_KEYS.items()]
     if options.objectives is not None:
-        data["objectives"] = parse_objectives(options.objectives)
-    for flag in ("verify", "robot"):
-        if getattr(options, flag, False):
-            data[flag] = True
+        sets.append((("objectives",), parse_objectives(options.objectives)))
+    sets += [((flag,), True) for flag in ("verify", "robot") if getattr(options, flag, False)]
     init = getattr(options, "init", None)
     if init is not None:
-        data["neural"]["init"]["kind"] = init if init in ("height", "heat") else "user"
+        sets.append((("neural", "init", "kind"), init if init in ("height", "heat") else "user"))
+    for keys, value in sets:
+        if value is not None:
+            _set_key(data, keys, value)
     try:
         return SliceConfig.checked(data, "options")
     except InputError as exc:  # name the option that set the key, else the key in the --config file

@@ -5,13 +5,14 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import CageConfig
 from neuralslicer.errors import InputError, validation_error_line
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
+from neuralslicer.motion.profile import load_profile
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 
@@ -73,6 +74,28 @@ class SliceConfig(BaseModel):
         "printed", description="stiff material axis of the computed layers in --verify: the printed toolpaths' "
         "direction, or the ideal one (tau_max projected onto the layer, a best case)")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _nozzle_defaults(cls, data: object) -> object:
+        """The layer thickness and line width the configuration leaves out: those of the machine profile's nozzle
+        (``nozzle.layer_height_mm``, ``layer_thickness_mm``, ``line_width_mm``)."""
+        if not isinstance(data, dict):
+            return data
+        try:
+            nozzle = load_profile(data.get("machine") or cls.model_fields["machine"].default).nozzle
+        except InputError:      # the preflight names the machine option and the profile's problem
+            return data
+        t_lo, t_hi = nozzle.layer_thickness_mm
+        filled = dict(data)
+        for section, values in (("layers", {"layer_height": nozzle.layer_height_mm, "t_min": t_lo, "t_max": t_hi}),
+                                ("toolpath", {"line_width": nozzle.line_width_mm})):
+            given = data.get(section)
+            if isinstance(given, BaseModel):
+                given = {k: getattr(given, k) for k in given.model_fields_set}
+            if given is None or isinstance(given, dict):
+                filled[section] = {**values, **(given or {})}
+        return filled
+
     def objectives_for(self, spec: ModelSpec) -> list[str]:
         """The objectives asked for, or the default: sf, po, gc with the ca constraint, plus sr when the
         spec has an FEA load case."""
@@ -92,6 +115,11 @@ class SliceConfig(BaseModel):
     @classmethod
     def from_yaml(cls, path: str | Path) -> SliceConfig:
         """Load a configuration file; errors name the file and the key."""
+        return cls.checked(cls.read_yaml(path), str(path))
+
+    @staticmethod
+    def read_yaml(path: str | Path) -> dict:
+        """A configuration file's mapping of sections, not validated yet (to add options to before validation)."""
         path = Path(path)
         if not path.is_file():
             raise InputError(path, "no such configuration file")
@@ -101,7 +129,7 @@ class SliceConfig(BaseModel):
             raise InputError(path, f"not valid YAML: {exc}") from None
         if not isinstance(data, dict):
             raise InputError(path, "a configuration file must be a mapping of sections")
-        return cls.checked(data, str(path))
+        return data
 
     @classmethod
     def checked(cls, data: dict, where: str) -> SliceConfig:

@@ -13,7 +13,7 @@ from neuralslicer.errors import InputError
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.model.solid import Solid
 from neuralslicer.model.spec import ModelSpec, load_model
-from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.motion.profile import MachineProfile, load_profile, profile_names
 
 if TYPE_CHECKING:
     from neuralslicer.fea.grid import SolidLike
@@ -108,8 +108,26 @@ def check_layer_count(solid: Solid, config: SliceConfig, limit: int = MAX_LAYERS
                          "no curved layers to print; use a smaller layer height")
     if not config.layers.t_min <= h <= config.layers.t_max:
         raise InputError(names.layer_height, f"{h:g} mm is outside the layers' thickness range "
-                         f"[{config.layers.t_min:g}, {config.layers.t_max:g}] mm (layers.t_min/t_max in {names.config})")
+                         f"[{config.layers.t_min:g}, {config.layers.t_max:g}] mm (layers.t_min/t_max: {_nozzle_of(config)}"
+                         f"); use a machine profile with a nozzle that prints it ({names.machine}: "
+                         f"{_nozzles_for(h)}), or set layers.t_min/t_max and toolpath.line_width together in "
+                         f"{names.config}")
     return n
+
+
+def _nozzle_of(config: SliceConfig) -> str:
+    """Where the configuration's thickness range comes from, in words: the machine's nozzle (or the profile's name)."""
+    try:
+        nozzle = load_profile(config.machine).nozzle
+    except InputError:
+        return f"machine {config.machine}"
+    return f"{config.machine}'s {nozzle.diameter_mm:g} mm nozzle, nozzle.layer_thickness_mm, unless set"
+
+
+def _nozzles_for(height: float) -> str:
+    """The shipped profiles whose nozzle's thickness range holds a layer height, or what to change."""
+    fit = [n for n in profile_names() if (r := load_profile(n).nozzle.layer_thickness_mm)[0] <= height <= r[1]]
+    return ", ".join(fit) if fit else "none shipped; set nozzle.diameter_mm in your profile"
 
 
 def check_machine(name: str, option: str = Names.machine) -> MachineProfile:
@@ -143,7 +161,13 @@ def preflight(spec: ModelSpec, solid: Solid, config: SliceConfig, out_dir: Path,
     lo, hi = machine.nozzle.bead_width_mm
     if not lo <= config.toolpath.line_width <= hi:
         raise InputError("toolpath.line_width", f"{config.toolpath.line_width:g} mm is outside the bead widths the "
-                         f"nozzle of {machine.name} lays ({lo:g}..{hi:g} mm, nozzle.bead_width_mm in the profile)")
+                         f"{machine.nozzle.diameter_mm:g} mm nozzle of {machine.name} lays ({lo:g}..{hi:g} mm, "
+                         "nozzle.bead_width_mm in the profile)")
+    thickest = machine.nozzle.bead_thickness_mm[1]
+    if config.layers.t_max > thickest:
+        raise InputError("layers.t_max", f"{config.layers.t_max:g} mm is more than the thickest bead the "
+                         f"{machine.nozzle.diameter_mm:g} mm nozzle of {machine.name} lays ({thickest:g} mm, "
+                         "nozzle.bead_thickness_mm in the profile)")
     if needs_fea:
         if spec.fea is None:
             raise InputError(spec.source or "model", "strength (sr), the verification and toolpath.infill: stress need the "

@@ -152,26 +152,65 @@ class Extrusion(_Model):
     retract_min_travel: float = Field(2.0, ge=0)
 
 
-class Nozzle(_Model):
-    """Print head for collision checks: a cone with its apex at the tool tip, then a holder cylinder."""
+#: what a profile leaves out of its nozzle follows from ``diameter_mm`` by the rules of ordinary slicers (a 0.4 mm
+#: nozzle: 0.2 mm layers in 0.1-0.3 mm, 0.45 mm lines), as multiples of the diameter. The paper's 1.0 mm nozzle
+#: prints thicker layers and thinner lines than these rules give: its profiles state the paper's values.
+NOZZLE_RULES: dict[str, float | tuple[float, float]] = {
+    "layer_height_mm": 0.5, "layer_thickness_mm": (0.25, 0.75), "line_width_mm": 1.125,
+    "bead_thickness_mm": (0.125, 1.0), "bead_width_mm": (0.75, 2.0)}
 
+
+class Nozzle(_Model):
+    """The nozzle: its diameter, the layers and lines it prints, and the head around it for collision checks (a
+    cone with its apex at the tool tip, then a holder cylinder). Values left out follow from the diameter
+    (``NOZZLE_RULES``)."""
+
+    #: the nozzle's bore (mm).
+    diameter_mm: float = Field(1.0, gt=0, le=5)
+    #: target layer thickness (mm): the slice's ``layers.layer_height`` unless the configuration sets it.
+    layer_height_mm: float | None = Field(None, gt=0)
+    #: smallest and largest local layer thickness the layers aim for (mm): ``layers.t_min`` / ``t_max``.
+    layer_thickness_mm: tuple[float, float] | None = None
+    #: line width (mm): ``toolpath.line_width`` unless the configuration sets it.
+    line_width_mm: float | None = Field(None, gt=0)
     cone_half_angle_deg: float = Field(30.0, gt=0, lt=90)
     cone_length: float = Field(8.0, gt=0)
     holder_radius: float = Field(15.0, gt=0)
     holder_length: float = Field(30.0, ge=0)
     #: bead thickness the nozzle lays with controlled flow (mm): thinner beads are not extruded (their
     #: material goes to the next layer's bead above them), thicker ones get this much at most.
-    bead_thickness_mm: tuple[float, float] = (0.15, 1.2)
+    bead_thickness_mm: tuple[float, float] | None = None
     #: bead width the nozzle lays (mm); the toolpaths' line width must lie in it.
-    bead_width_mm: tuple[float, float] = (0.3, 1.0)
+    bead_width_mm: tuple[float, float] | None = None
 
     @model_validator(mode="after")
     def _check_beads(self) -> "Nozzle":
-        for name in ("bead_thickness_mm", "bead_width_mm"):
+        d = self.diameter_mm
+        for name, rule in NOZZLE_RULES.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, tuple(round(r * d, 6) for r in rule) if isinstance(rule, tuple)
+                                   else round(rule * d, 6))
+        for name in ("layer_thickness_mm", "bead_thickness_mm", "bead_width_mm"):
             lo, hi = getattr(self, name)
             if not 0 < lo < hi:
                 raise ValueError(f"{name}: need 0 < min < max, got [{lo}, {hi}]")
+        t_lo, t_hi = self.layer_thickness_mm
+        if not t_lo <= self.layer_height_mm <= t_hi:
+            raise ValueError(f"layer_height_mm: {self.layer_height_mm:g} mm is outside layer_thickness_mm "
+                             f"[{t_lo:g}, {t_hi:g}]")
+        if t_hi > self.bead_thickness_mm[1]:
+            raise ValueError(f"layer_thickness_mm: its largest, {t_hi:g} mm, is more than the thickest bead, "
+                             f"bead_thickness_mm {self.bead_thickness_mm[1]:g}")
+        w_lo, w_hi = self.bead_width_mm
+        if not w_lo <= self.line_width_mm <= w_hi:
+            raise ValueError(f"line_width_mm: {self.line_width_mm:g} mm is outside bead_width_mm [{w_lo:g}, {w_hi:g}]")
         return self
+
+    def in_words(self) -> str:
+        """The nozzle and what it prints, for a listing: ``0.4 mm nozzle, layers 0.2 (0.1-0.3) mm, lines 0.45 mm``."""
+        t_lo, t_hi = self.layer_thickness_mm
+        return (f"{self.diameter_mm:g} mm nozzle, layers {self.layer_height_mm:g} ({t_lo:g}-{t_hi:g}) mm, "
+                f"lines {self.line_width_mm:g} mm")
 
 
 class GcodeOptions(_Model):
