@@ -57,6 +57,8 @@ def cmd_study(args: argparse.Namespace) -> int:
 
     def job() -> int:
         prefect_environment()
+        from neuralslicer.flows.cluster import check_cluster
+        from neuralslicer.flows.study_server import study_api
         from neuralslicer.flows.studies import ablation_study, batch_study, cage_study, initial_guess_study, methods_study
         from neuralslicer.storage import ArtifactStore
 
@@ -74,7 +76,11 @@ def cmd_study(args: argparse.Namespace) -> int:
             run = lambda: ablation_study(model=args.model, **common)  # noqa: E731
         else:
             run = lambda: batch_study(models=list(args.models), **common)  # noqa: E731
-        with cache_settings(store):
+        if args.dask not in (None, "local"):   # before a server starts: every worker shares the store and the folder
+            check_cluster(args.dask, {"--store": store, "--out": str(out_dir)}, api_url=None)
+        with cache_settings(store), study_api(args.dask) as api_url:
+            if api_url is not None:
+                print(f"Prefect API of this study (handed to its Dask workers): {api_url}", flush=True)
             study = with_api_retry(run)
         print_study(study)
         return 0 if all(b.get("status") == "completed" for b in study["branches"]) else 1

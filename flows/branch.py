@@ -32,6 +32,8 @@ class Branch(BaseModel):
     store: str = Field(description="artifact store path or fsspec URL")
     user_field: str | None = Field(None, description=".npz with 'points' (p,3, build frame) and 'values' (p,)")
     parameters: dict[str, Any] = Field(default_factory=dict, description="what this branch varies (for reports)")
+    resources: dict[str, float] = Field(default_factory=dict,
+                                        description="Dask resources it holds while it runs (GPU: 1 for a CUDA field)")
 
 
 def load_branch_spec(model: str, up: str | None) -> ModelSpec:
@@ -57,8 +59,12 @@ def make_user_field(bounds: np.ndarray, path: str | Path, n: int = 9, tilt: floa
 
 
 def worker_identity() -> dict[str, Any]:
-    """Where this code runs: pid, host, thread, and the Dask worker's name/address when on one."""
-    info: dict[str, Any] = {"pid": os.getpid(), "host": socket.gethostname(), "thread": threading.current_thread().name}
+    """Where this code runs: pid, host, thread, the Prefect API its task runs report to, and the Dask worker's
+    name/address when on one."""
+    from prefect.settings import get_current_settings
+
+    info: dict[str, Any] = {"pid": os.getpid(), "host": socket.gethostname(), "thread": threading.current_thread().name,
+                            "prefect_api": get_current_settings().api.url}
     try:
         from distributed import get_worker
 

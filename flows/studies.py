@@ -11,7 +11,9 @@ from prefect.states import Failed, State
 from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
+from neuralslicer.flows.cluster import annotated, branch_resources, check_cluster, needs_gpu
 from neuralslicer.flows.settings import cache_settings, quiet_input_errors
+from neuralslicer.flows.study_server import configured_api_url
 from neuralslicer.flows.branch import Branch, load_branch_spec, make_user_field, study_branch
 from neuralslicer.flows.study_report import write_study_outputs
 from neuralslicer.config import SliceConfig
@@ -63,7 +65,10 @@ def study_engine(kind: str, title: str, branches: list[Branch], out_dir: str) ->
     """Run every branch concurrently on this flow's task runner, then write study.json/study.md and Prefect artifacts."""
     logger = get_run_logger()
     start = time.perf_counter()
-    futures = [study_branch.submit(b) for b in branches]
+    futures = []
+    for b in branches:
+        with annotated(b.resources):   # a CUDA branch on a cluster: a worker with the GPU resource
+            futures.append(study_branch.submit(b))
     results = []
     for b, fut in zip(branches, futures):
         fut.wait()
@@ -85,8 +90,32 @@ def study_engine(kind: str, title: str, branches: list[Branch], out_dir: str) ->
     return study
 
 
-def run_study(kind: str, title: str, branches: list[Branch], options: StudyOptions) -> dict[str, Any]:
-    """Run the study engine as a subflow on the task runner the options ask for."""
+def check_engine(options: StudyOptions, branches: list[Branch]) -> list[Branch]:
+    """The branches, ready for the engine the options name. On Dask: a Prefect API the workers reach (never the
+    ephemeral one, whose address no worker gets); on a scheduler's address, besides: every worker shares the
+    store and the study folder and reaches the API, a CUDA branch asks for a GPU worker (``flows/cluster.py``)."""
+    if not options.dask:
+        return branches
+    api_url = configured_api_url()
+    if api_url is None:
+        raise InputError("--dask", "a study on Dask needs a Prefect API server that its workers reach: set "
+                         "PREFECT_API_URL (prefect server start), or run it with `neuralslicer study`, which "
+                         "starts one")
+    if options.dask == "local":
+        return branches
+    workers = check_cluster(options.dask, {"--store": branches[0].store, "--out": options.out_dir}, api_url,
+                            gpu=any(needs_gpu(b.config) for b in branches))
+    get_run_logger().info("Dask scheduler %s: %d worker(s) share the store and the study folder and reach the "
+                          "Prefect API %s", options.dask, len(workers), api_url)
+    return [b.model_copy(update={"resources": branch_resources(b.config)}) for b in branches]
+
+
+def run_study(kind: str, title: str, branches: list[Branch], options: StudyOptions) -> dict[str, Any] | State:
+    """Run the study engine as a subflow on the task runner the options ask for, once that engine is checked."""
+    try:
+        branches = check_engine(options, branches)
+    except InputError as exc:
+        return failed_on_input(exc)
     runner = task_runner(options.dask, len(branches), options.dask_workers, options.max_workers)
     engine = study_engine.with_options(task_runner=runner, flow_run_name=f"{kind}-{Path(options.out_dir).name}")
     return engine(kind=kind, title=title, branches=branches, out_dir=options.out_dir)
@@ -322,7 +351,7 @@ def slice_model(model: str, out_dir: str, up: UpAxis | None = None, units: Units
 @flow(name="neuralslicer-study-methods")
 def methods_study(model: str, out_dir: str, up: str | None = None, store: str | None = None,
                   config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
-                  max_workers: int | None = None) -> dict[str, Any]:
+                  max_workers: int | None = None) -> dict[str, Any] | State:
     """Neural Slicer vs the S3-Slicer baseline vs planar layers on one model: the same cage, samples and
     downstream stages; overhang held out and from the exported layers, collisions, layers, time (and strain with
     --verify)."""
@@ -334,7 +363,7 @@ def methods_study(model: str, out_dir: str, up: str | None = None, store: str | 
 @flow(name="neuralslicer-study-ablation")
 def ablation_study(model: str, out_dir: str, up: str | None = None, store: str | None = None,
                    config: SliceConfig | None = None, dask: str | None = None, dask_workers: int = 2,
-                   max_workers: int | None = None) -> dict[str, Any]:
+                   max_workers: int | None = None) -> dict[str, Any] | State:
     """The Neural Slicer's ablations on one model: PO on and off, Q-S networks vs per-element q and s, SR on and
     off (with an FEA block); learning curves overlaid."""
     options = _options(out_dir, store, config, up, dask, dask_workers, max_workers)

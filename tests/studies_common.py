@@ -28,7 +28,7 @@ def tiny_config(max_steps: int = 8, checkpoint_every: int = 4, objectives: list[
         "neural": {"network": "small", "init": {"pretrain_steps": 5},
                    # run to the budget (no stop on met constraints): step counts are what the tests check
                    "optim": {"max_steps": max_steps, "checkpoint_every": checkpoint_every, "target_overhang": 0}},
-        "layers": {"layer_height": 1.5, "t_min": 0.75, "t_max": 2.5, "thickness_samples": 1000},
+        "layers": {"layer_height": 1.1, "t_min": 0.6, "t_max": 1.2, "thickness_samples": 1000},  # <= the 1.2 mm bead
         "toolpath": {"line_width": 1.0, "spacing": 1.5, "n_shells": 1, "infill_density": 0.3},  # the nozzle lays <= 1 mm
         "collision_refinements": 0,
         "collision_retries": 0,
