@@ -389,7 +389,10 @@ def test_a_three_axis_slice_keeps_printing_directions_in_the_clearance_cone(smal
     from neuralslicer.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
 
-    config = SliceConfig.model_validate(fast_config(neural={"optim": {"max_steps": 150}}, machine="three_axis_reprap"))
+    config = SliceConfig.model_validate(fast_config(      # the profile's 0.4 mm nozzle: 0.3 mm layers, 0.8 mm lines
+        neural={"optim": {"max_steps": 150}}, machine="three_axis_reprap",
+        layers={"layer_height": 0.3, "thickness_samples": 2000},
+        toolpath={"line_width": 0.8, "spacing": 1.0, "n_shells": 1, "infill_density": 0.5}))
     chain, metrics = slice_model(spec_for_file(small_part, "z"), config, tmp_path / "run")
     clearance = load_profile("three_axis_reprap").kinematics.clearance_deg
     assert metrics["three_axis.clearance_deg"] == clearance
