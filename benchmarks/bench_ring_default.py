@@ -1,4 +1,5 @@
-"""The ring with the default command, mesh in to G-code out, in fresh stores (a new fTetWild cage each time).
+"""The ring with the default command, mesh in to G-code out, in fresh stores (another fTetWild cage each run:
+``cage.seed`` = the run's number).
 
     .venv/bin/python benchmarks/bench_ring_default.py [RUNS]
 
@@ -24,14 +25,17 @@ RING = ROOT.parent / "neuralslicer" / "data" / "ring.tet"
 RESULTS = ROOT / "results" / "bench_ring_default.json"
 
 
-def one_run(tmp: Path) -> dict:
-    """One default ring slice in a fresh store: its figures."""
-    # the cage cache off: every run meets a new fTetWild cage, as a new model would
+def one_run(tmp: Path, seed: int = 0) -> dict:
+    """One default ring slice in a fresh store, its cage seeded with ``seed``: its figures."""
+    # the cage cache off and a cage seed per run: every run meets another fTetWild cage, as a new model would
     env = {**os.environ, "PREFECT_HOME": str(tmp / "prefect"), "NEURALSLICER_CACHE_DIR": "off"}
+    config = tmp / "seed.yaml"
+    config.write_text(f"cage: {{seed: {seed}}}\n")
     out = tmp / "ring"
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "slice", str(RING), "--up", "y", "--out", str(out)],
+    done = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "slice", str(RING), "--up", "y", "--out", str(out),
+                           "--config", str(config)],
                           env=env, capture_output=True, text=True, cwd=ROOT.parent)
     wall = time.perf_counter() - start
     if done.returncode != 0:
@@ -79,7 +83,7 @@ def main(runs: int = 3) -> None:
     rows = []
     for i in range(runs):
         with tempfile.TemporaryDirectory() as tmp:
-            rows.append(one_run(Path(tmp)))
+            rows.append(one_run(Path(tmp), seed=i))
         r = rows[-1]
         print(f"run {i + 1}: {r['wall_s']:.0f} s, {r['steps']} steps, first print {r['first_print_collisions']} "
               f"collisions, {r['fields_printed']} field(s) printed, blend {r['blend_planar']:g}, overhang "

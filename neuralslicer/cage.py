@@ -4,7 +4,6 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -32,7 +31,8 @@ class CageConfig(BaseModel):
     n_elements: int = Field(10_000, ge=200, le=2_000_000, description="target number of cage tets")
     offset: float | None = Field(None, gt=0, description="offset of the cage surface from the solid, mm (default: auto)")
     tolerance: float = Field(0.35, gt=0, description="accepted relative deviation from n_elements before one retry")
-    seed: int = Field(0, description="seed of the containment check's random interior points")
+    seed: int = Field(0, description="seed of fTetWild's triangle order and of the containment check's random "
+                      "interior points")
 
 
 @dataclass
@@ -43,6 +43,7 @@ class Cage:
     tets: np.ndarray
     offset: float
     edge_length: float
+    seeded: bool = False  # fTetWild's draw came from the seed (the same inputs give the same cage anywhere)
 
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
         """Store-able arrays and attributes."""
@@ -51,12 +52,14 @@ class Cage:
             "edge_length": self.edge_length,
             "n_elements": int(len(self.tets)),
             "n_vertices": int(len(self.vertices)),
+            "seeded": self.seeded,
         }
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Cage:
         """Rebuild from store arrays."""
-        return cls(arrays["vertices"], arrays["tets"].astype(np.int64), attrs["offset"], attrs["edge_length"])
+        return cls(arrays["vertices"], arrays["tets"].astype(np.int64), attrs["offset"], attrs["edge_length"],
+                   bool(attrs.get("seeded", False)))
 
     def summary(self) -> dict[str, float | int | str]:
         """Genus of the cage boundary, the cage volume (mm^3) and the content digest, for the record."""
@@ -90,22 +93,20 @@ def offset_surface(H: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, of
     return trimesh.Trimesh(verts, faces, process=True)
 
 
-def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, np.ndarray]:
-    """fTetWild on the offset surface at an absolute ideal edge length, with an envelope of ENVELOPE * edge."""
-    import pytetwild
+def _tetrahedralize(surface: trimesh.Trimesh, edge: float, seed: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """fTetWild, seeded (neuralslicer/tetwild_seed.py), on the offset surface at an absolute ideal edge length, with
+    an envelope of ENVELOPE * edge: (vertices, tets, whether the seed took)."""
+    from neuralslicer import tetwild_seed
 
     diag = float(np.linalg.norm(surface.bounds[1] - surface.bounds[0]))
-    tracked = Path("__tracked_surface.stl")  # fTetWild leaves this debug file in the working directory
-    existed = tracked.exists()
-    v, t = pytetwild.tetrahedralize(
+    v, t, seeded = tetwild_seed.tetrahedralize(
         np.asarray(surface.vertices, dtype=np.float64),
         np.asarray(surface.faces, dtype=np.int32),
-        edge_length_abs=edge,
-        epsilon=ENVELOPE * edge / diag,
+        seed,
+        edge_length_abs=float(edge),
+        epsilon=float(ENVELOPE * edge / diag),
         quiet=True,
     )
-    if not existed:
-        tracked.unlink(missing_ok=True)
     t = t.astype(np.int64)
     t = orient_tets(v, t)
     keep = np.abs(tet_volumes(v, t)) > 0
@@ -113,7 +114,7 @@ def _tetrahedralize(surface: trimesh.Trimesh, edge: float) -> tuple[np.ndarray, 
     used = np.unique(t)
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    return v[used], remap[t]
+    return v[used], remap[t], seeded
 
 
 def check_containment(cage: Cage, points: np.ndarray) -> np.ndarray:
@@ -139,12 +140,12 @@ def build_cage(
     for _attempt in range(4):
         surface = offset_surface(H, bounds, offset, h)
         edge = (6 * np.sqrt(2) * abs(surface.volume) / config.n_elements) ** (1 / 3)
-        v, t = _tetrahedralize(surface, edge)
+        v, t, seeded = _tetrahedralize(surface, edge, config.seed)
         ratio = len(t) / config.n_elements
         if abs(ratio - 1) > config.tolerance:
             edge *= ratio ** (1 / 3)
-            v, t = _tetrahedralize(surface, edge)
-        cage = Cage(v, t, float(offset), float(edge))
+            v, t, seeded = _tetrahedralize(surface, edge, config.seed)
+        cage = Cage(v, t, float(offset), float(edge), seeded)
         missing = check_containment(cage, check_points)
         if len(missing) == 0:
             return cage

@@ -1,6 +1,6 @@
-"""A content-addressed cache shared by every store on a machine: results of steps that are not
-deterministic (fTetWild's cage varies from call to call), keyed by the digest of their inputs, so the
-same inputs give the same artifact in any store.
+"""A content-addressed cache shared by every store on a machine: results of steps that are costly or not
+deterministic everywhere (fTetWild's cage: seeded on Linux, neuralslicer/tetwild_seed.py, varying from call to call
+elsewhere), keyed by the digest of their inputs, so the same inputs give the same artifact in any store.
 
 Entries are ``<root>/<kind>/<key>.npz`` (arrays, read with ``allow_pickle=False``: an entry cannot run
 code) beside ``<key>.json`` (attributes), each written atomically. The root is ``NEURALSLICER_CACHE_DIR``,

@@ -49,7 +49,7 @@ def samples_task(out: ArtifactRef, store: str, model: ArtifactRef, config: Sampl
     return samples.to_arrays()
 
 
-@pipeline_task("cage", version="1")
+@pipeline_task("cage", version="2")
 def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: ArtifactRef, config: CageConfig
               ) -> tuple[dict, dict]:
     """Tetrahedralized offset of the solid at the target element count, containing B and interior points."""
@@ -63,7 +63,10 @@ def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: Artifac
     arrays, attrs = cage.to_arrays()
     attrs.update(cage.summary())
     get_run_logger().info("cage: %d tets, %d vertices, genus %d", len(cage.tets), len(cage.vertices), attrs["genus"])
-    cache.save("cage", out.digest, arrays, attrs)  # fTetWild is not deterministic: the same inputs reuse this cage
+    if not cage.seeded:
+        get_run_logger().warning("cage: fTetWild's random draw could not be seeded here (neuralslicer/tetwild_seed.py): "
+                                 "another machine builds another cage from these inputs")
+    cache.save("cage", out.digest, arrays, attrs)  # the same inputs reuse this cage (unseeded, fTetWild's varies)
     return arrays, attrs
 
 
