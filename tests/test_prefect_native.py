@@ -116,7 +116,10 @@ def test_auto_resolves_without_torch_on_a_cpu_build(monkeypatch) -> None:
     monkeypatch.setattr("importlib.metadata.version", lambda name: "2.13.0+cpu")
     monkeypatch.setitem(sys.modules, "torch", None)          # importing torch now fails
     assert device.cuda_possible() is False and slice_flow_module.device_tags("auto") == ()
-    monkeypatch.setattr("importlib.metadata.version", lambda name: "2.13.0")
+    monkeypatch.setattr("importlib.metadata.version", lambda name: "2.13.0")      # a CUDA build (PyPI's for 3.12)
+    monkeypatch.setattr(device, "GPU_DRIVER_FILES", ())                          # on a machine without a GPU driver
+    assert device.cuda_possible() is (not sys.platform.startswith("linux"))
+    monkeypatch.setattr(device, "GPU_DRIVER_FILES", (__file__,))                 # with one
     assert device.cuda_possible() is True
     with pytest.raises(ImportError):
         slice_flow_module.device_tags("auto")

@@ -12,15 +12,23 @@ if TYPE_CHECKING:
 CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
 
 
+#: files of a GPU driver on Linux (CUDA's control device and its proc entry, ROCm's kfd, WSL's GPU): without one, a
+#: GPU build of torch (all PyPI has for Python 3.12 and 3.13) finds no GPU either
+GPU_DRIVER_FILES = ("/dev/nvidiactl", "/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
+
+
 def cuda_possible() -> bool:
-    """Whether the installed torch can use a GPU at all, read from its distribution without importing it: a CPU build
-    (local version ``+cpu``) cannot; any other build may."""
+    """Whether torch could use a GPU here, decided without importing it: not with a CPU build (local version
+    ``+cpu``), nor on Linux without a GPU driver's files; elsewhere a GPU build may."""
+    import sys
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return not version("torch").endswith("+cpu")
+        if version("torch").endswith("+cpu"):
+            return False
     except PackageNotFoundError:
         return False
+    return not sys.platform.startswith("linux") or any(Path(f).exists() for f in GPU_DRIVER_FILES)
 
 
 def resolve_device(device: str = "auto") -> torch.device:
