@@ -16,7 +16,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from neuralslicer.neural.config import DeformationConfig
-from neuralslicer.neural.networks import quaternion_to_matrix
+from neuralslicer.neural.networks import quaternion_to_matrix, quaternion_to_z_row
 
 #: centring matrix N = I_4 - 1/4 * ones
 CENTRING = np.eye(4) - 0.25
@@ -180,9 +180,11 @@ class ArapDeformation:
         return out.index_add(0, self._const("idx", scales, index=True), target.reshape(-1, 3))
 
     def rhs_z(self, rotations: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-        """z column of A^T b + gamma xi0 (n,): only the third row of R_e is needed."""
+        """z column of A^T b + gamma xi0 (n,): only the third row of R_e is needed (rotations (m,3,3), or their
+        third rows (m,3))."""
         P = self._const("rest", scales)
-        target = torch.einsum("eij,ej,ej->ei", P, scales, rotations[:, 2, :])  # (m,4)
+        row = rotations[:, 2, :] if rotations.dim() == 3 else rotations
+        target = torch.einsum("eij,ej,ej->ei", P, scales, row)  # (m,4)
         out = self.gamma * self._const("z", scales)
         return out.index_add(0, self._const("idx", scales, index=True), target.reshape(-1))
 
@@ -207,6 +209,6 @@ class ArapDeformation:
         return torch.cat([xy, self.solve_z(rhs[:, 2])[:, None]], dim=1)
 
     def deformed_height(self, quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-        """z of the deformed cage vertices (n,), i.e. G at the cage vertices (SPEC step 7)."""
-        R = quaternion_to_matrix(quaternions)
-        return self.solve_z(self.rhs_z(R, scales))
+        """z of the deformed cage vertices (n,), i.e. G at the cage vertices (SPEC step 7); of each rotation only
+        the third row is formed."""
+        return self.solve_z(self.rhs_z(quaternion_to_z_row(quaternions), scales))

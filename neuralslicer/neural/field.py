@@ -70,7 +70,7 @@ class CageGeometry:
 
 def field_gradient(G: torch.Tensor, tets: torch.Tensor, bary_grads: torch.Tensor) -> torch.Tensor:
     """Per-tet gradient of the piecewise-linear G: sum_i G[v_i] grad a_i, (m,3) from G (n,)."""
-    return torch.einsum("ei,eij->ej", G[tets], bary_grads)
+    return torch.einsum("ei,eij->ej", G.index_select(0, tets.reshape(-1)).view(tets.shape), bary_grads)
 
 
 def unit(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:

@@ -332,6 +332,12 @@ def link_pairs(points: np.ndarray, n_base: int, links: np.ndarray, radius: float
     return pairs, thinned
 
 
+def _kept(mask: torch.Tensor, *columns: torch.Tensor) -> list[torch.Tensor]:
+    """The rows of each of columns (a,...) where mask (a,) holds, in order."""
+    idx = torch.nonzero(mask).flatten()
+    return [c.index_select(0, idx) for c in columns]
+
+
 def _water_level(sizes: np.ndarray, budget: float) -> float:
     """The cap c with sum(min(sizes, c)) = budget (inf when all of sizes fit in the budget)."""
     if sizes.sum() <= budget:
@@ -377,7 +383,8 @@ class HeadCollision:
             warnings.warn(f"L_GC refinement: {self.links_thinned:,} of {len(links):,} links thinned to a random "
                           f"share of their pairs (refine.max_pairs = {max_link_pairs:,} in all)",
                           RuntimeWarning, stacklevel=2)
-        self.near = torch.as_tensor(np.concatenate([near, extra]), device=device)
+        # (2,k): each column's indices contiguous, as the pair search gathers them
+        self._near = torch.as_tensor(np.ascontiguousarray(np.concatenate([near, extra]).T), device=device)
         self.head, self.platform_z = head, platform_z
         self.clearance, self.lift, self.length, self.margin = clearance, lift, length, margin
         self.platform_clearance = min(clearance, 0.5 * head.cone_length)
@@ -391,6 +398,7 @@ class HeadCollision:
         self.points_t = torch.as_tensor(self.points, dtype=dtype, device=device)
         self._extent = float(np.abs(self.points).max(initial=0.0))   # coordinates' size: the height bound's margin
         self.pairs = torch.zeros((0, 2), dtype=torch.int64, device=device)
+        self.pair_offsets = torch.zeros((0, 3), dtype=dtype, device=device)  # x - p per active pair (p, x)
         self.low_points = torch.zeros(0, dtype=torch.int64, device=device)
         floor = floor if floor is not None and platform_z is not None else FloorTets.empty()
         self.n_floor = len(floor.tets)
@@ -405,8 +413,8 @@ class HeadCollision:
     def values(self, G: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(G at the pool points (k,), the head's unit axis (k,3): the LPD, or +z for a vertical head, |grad G|
         (k,)) from G at the cage vertices (n,) and its per-tet gradient (m,3)."""
-        g = (self.bary_t * G[self.vertex_ids]).sum(dim=1)
-        d = grad[self.tet_t]
+        g = (self.bary_t * G.index_select(0, self.vertex_ids.reshape(-1)).view(self.vertex_ids.shape)).sum(dim=1)
+        d = grad.index_select(0, self.tet_t)
         norm = d.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return g, self._axis(d / norm), norm[:, 0]
 
@@ -416,15 +424,21 @@ class HeadCollision:
             return lpd
         return torch.tensor([0.0, 0.0, 1.0], dtype=lpd.dtype, device=lpd.device).expand_as(lpd)
 
-    def _depth(self, pairs: torch.Tensor, d: torch.Tensor, inflate: float, lift: float) -> torch.Tensor:
-        """Depth of x in the head at p, grown by inflate and lifted by lift along d_p, per pair (p, x)."""
-        p, x = pairs[:, 0], pairs[:, 1]
-        return self.head.depth(self.points_t[x] - self.points_t[p] - lift * d[p], d[p], inflate)
+    def _offsets(self, p: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """x - p (a,3) per pair (p, x) of pool points (indices (a,) each)."""
+        return self.points_t.index_select(0, x) - self.points_t.index_select(0, p)
+
+    def _depth(self, p: torch.Tensor, x: torch.Tensor, d: torch.Tensor, inflate: float, lift: float,
+               offsets: torch.Tensor | None = None) -> torch.Tensor:
+        """Depth of x in the head at p, grown by inflate and lifted by lift along d_p, per pair (p, x) (``offsets``:
+        their x - p, when known)."""
+        offsets = self._offsets(p, x) if offsets is None else offsets
+        return self.head.depth(offsets - lift * d.index_select(0, p), d.index_select(0, p), inflate)
 
     @staticmethod
-    def _early(pairs: torch.Tensor, g: torch.Tensor, norm: torch.Tensor, lift: float) -> torch.Tensor:
+    def _early(p: torch.Tensor, x: torch.Tensor, g: torch.Tensor, norm: torch.Tensor, lift: float) -> torch.Tensor:
         """How far (mm) x is printed before p, plus lift, per pair (p, x)."""
-        return (g[pairs[:, 0]] - g[pairs[:, 1]]) / norm[pairs[:, 1]] + lift
+        return (g.index_select(0, p) - g.index_select(0, x)) / norm.index_select(0, x) + lift
 
     def _select(self, g: torch.Tensor, d: torch.Tensor, norm: torch.Tensor, inflate: float, lift: float,
                 chunk: int = 2_000_000) -> torch.Tensor:
@@ -437,19 +451,26 @@ class HeadCollision:
         fraction of its cost (a few % of the pairs in reach pass)."""
         out = []
         floor = self.head.min_height - 1e-4 * (1.0 + self._extent + abs(lift))
-        for start in range(0, len(self.near), chunk):
-            pairs = self.near[start:start + chunk]
-            pairs = pairs[self._early(pairs, g, norm, lift) > 0]
-            p, x = pairs[:, 0], pairs[:, 1]
-            pairs = pairs[((self.points_t[x] - self.points_t[p]) * d[p]).sum(dim=1) - lift > floor]
-            out.append(pairs[self._depth(pairs, d, inflate, lift) > 0])
+        for start in range(0, self._near.shape[1], chunk):
+            p, x = self._near[0, start:start + chunk], self._near[1, start:start + chunk]
+            p, x = _kept(self._early(p, x, g, norm, lift) > 0, p, x)
+            offsets = self._offsets(p, x)
+            p, x, offsets = _kept((offsets * d.index_select(0, p)).sum(dim=1) - lift > floor, p, x, offsets)
+            p, x = _kept(self._depth(p, x, d, inflate, lift, offsets) > 0, p, x)
+            out.append(torch.stack([p, x], dim=1))
         return torch.cat(out) if out else self.near[:0]
+
+    @property
+    def near(self) -> torch.Tensor:
+        """The ordered pairs (p, x) of pool points within the head's reach of each other (k,2)."""
+        return self._near.t()
 
     @torch.no_grad()
     def refresh(self, G: torch.Tensor, grad: torch.Tensor) -> int:
         """Find the active pairs (near or in collision) for the current field; returns their number."""
         g, d, norm = self.values(G, grad)
         self.pairs = self._select(g, d, norm, self.clearance + self.margin, self.lift + self.margin)
+        self.pair_offsets = self._offsets(self.pairs[:, 0], self.pairs[:, 1])
         if self.platform_z is not None:
             clear = self.points_t[:, 2] + self.head.lowest(d, self.platform_turn) - self.platform_z
             self.low_points = torch.nonzero(clear < self.platform_clearance + self.margin).flatten()
@@ -466,8 +487,9 @@ class HeadCollision:
         """(per active pair c(p, x) (a,), per platform candidate penalty (b,): pool points, then floor tets
         weighted by their volume in pool cells), differentiable."""
         g, d, norm = self.values(G, grad)
-        pair = (torch.relu(self._depth(self.pairs, d, self.clearance, self.lift))
-                * torch.relu(self._early(self.pairs, g, norm, self.lift)))
+        p, x = self.pairs[:, 0], self.pairs[:, 1]
+        pair = (torch.relu(self._depth(p, x, d, self.clearance, self.lift, self.pair_offsets))
+                * torch.relu(self._early(p, x, g, norm, self.lift)))
         plat = [G.new_zeros(0)]
         low = self.low_points
         if self.platform_z is not None and len(low):

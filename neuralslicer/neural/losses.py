@@ -42,6 +42,11 @@ def strength_loss(
     return _normalised_sum(torch.sigmoid(k * x), volumes)
 
 
+def neighbour_offsets(points: torch.Tensor, neighbours: torch.Tensor, all_points: torch.Tensor) -> torch.Tensor:
+    """p_j - p (n,k,3) for samples p (n,3) and their neighbour ids (n,k) into all_points."""
+    return all_points[neighbours] - points[:, None, :]
+
+
 def point_overhang_loss(
     lpd: torch.Tensor,
     points: torch.Tensor,
@@ -49,9 +54,11 @@ def point_overhang_loss(
     all_points: torch.Tensor,
     areas: torch.Tensor,
     length: float,
+    offsets: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """L_PO for samples p (n,3) with LPDs (n,3), neighbour ids (n,k) into all_points, weights (n,)."""
-    diff = all_points[neighbours] - points[:, None, :]  # (n,k,3)
+    """L_PO for samples p (n,3) with LPDs (n,3), neighbour ids (n,k) into all_points, weights (n,); ``offsets``:
+    their :func:`neighbour_offsets` when known (the samples do not move)."""
+    diff = neighbour_offsets(points, neighbours, all_points) if offsets is None else offsets  # (n,k,3)
     proj = torch.einsum("nkj,nj->nk", diff, lpd)
     return _normalised_sum(torch.relu(proj.min(dim=1).values), areas) / length
 
@@ -60,7 +67,7 @@ def harmonic_scale_loss(
     scales: torch.Tensor, pairs: torch.Tensor, pair_weights: torch.Tensor
 ) -> torch.Tensor:
     """L_HS for per-element scale ratios (m,3), adjacent pairs (k,2), weights (|V_i|+|V_j|)/2."""
-    diff = scales[pairs[:, 0]] - scales[pairs[:, 1]]
+    diff = scales.index_select(0, pairs[:, 0]) - scales.index_select(0, pairs[:, 1])
     return _normalised_sum((diff * diff).sum(dim=1), pair_weights)
 
 
@@ -68,7 +75,7 @@ def harmonic_quaternion_loss(
     quaternions: torch.Tensor, pairs: torch.Tensor, pair_weights: torch.Tensor
 ) -> torch.Tensor:
     """L_HQ for per-element unit quaternions (m,4), adjacent pairs (k,2), pair weights (k,)."""
-    dot = (quaternions[pairs[:, 0]] * quaternions[pairs[:, 1]]).sum(dim=1)
+    dot = (quaternions.index_select(0, pairs[:, 0]) * quaternions.index_select(0, pairs[:, 1])).sum(dim=1)
     return _normalised_sum((1.0 - dot) ** 2, pair_weights)
 
 
@@ -82,7 +89,7 @@ def crease_concavity(
     With this orientation ``(n_L x n_R).h = sin(theta) sign``: positive in a concave crease (a
     valley seen from the side where G grows, where the nozzle is), negative in a convex one.
     """
-    gl, gr = gradients[pairs[:, 0]], gradients[pairs[:, 1]]
+    gl, gr = gradients.index_select(0, pairs[:, 0]), gradients.index_select(0, pairs[:, 1])
     nl, nr = gl / gl.norm(dim=1, keepdim=True).clamp_min(1e-12), gr / gr.norm(dim=1, keepdim=True).clamp_min(1e-12)
     g_mean = 0.5 * (gl + gr)  # tangential part is shared by both sides for a continuous G
     t = g_mean - (g_mean * face_normals).sum(dim=1, keepdim=True) * face_normals

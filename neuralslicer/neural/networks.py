@@ -130,3 +130,10 @@ def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
         ],
         dim=1,
     ).reshape(-1, 3, 3)
+
+
+def quaternion_to_z_row(q: torch.Tensor) -> torch.Tensor:
+    """Third rows (n,3) of the rotation matrices of unit quaternions q (n,4) = (w, x, y, z): the entries of
+    :func:`quaternion_to_matrix` that the height G needs, computed by the same expressions."""
+    w, x, y, z = q.unbind(dim=1)
+    return torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=1)

@@ -236,13 +236,12 @@ def load_weights(fields: DeformationFields, weights: Mapping[str, np.ndarray]) -
 
 
 def loss_of(problem: FieldProblem, fields: DeformationFields, weights: dict) -> float:
-    """Total loss of other weights (the fields' own weights are left as they were)."""
-    current = _clone_state(fields.state_dict())
-    fields.load_state_dict(weights)
+    """Total loss of other weights, evaluated on a copy of the networks (the fields and the graph of their last
+    evaluation are left as they were)."""
+    other = copy.deepcopy(fields)
+    other.load_state_dict(weights)
     with torch.no_grad():
-        total = float(problem.evaluate(fields)[0])
-    fields.load_state_dict(current)
-    return total
+        return float(problem.evaluate(other, remember=False)[0])
 
 
 def stale_collisions(problem: FieldProblem, fields: DeformationFields) -> bool:
@@ -557,11 +556,12 @@ def iterate(problem: FieldProblem, st: LoopState, first: bool) -> int | None:
     record it and test convergence. Returns the pairs still violating L_CA."""
     oc = problem.config.optim
     check = st.step % oc.check_every == 0
-    if problem.head is not None and (check or first):
-        problem.refresh_collisions(st.fields)
-        if st.best_state is not None:  # the best loss again, on the new pairs
-            st.best_state["loss"] = loss_of(problem, st.fields, st.best_state["fields"])
+    refresh = problem.head is not None and (check or first)
+    if refresh:  # on the first evaluation's field, before its terms
+        problem.schedule_refresh()
     total, terms, n_corr, n_viol = corrected_evaluation(problem, st.fields)
+    if refresh and st.best_state is not None:  # the best loss again, on the new pairs
+        st.best_state["loss"] = loss_of(problem, st.fields, st.best_state["fields"])
     if check and st.step > 0 and n_viol == 0 and problem.constraints_met(st.fields, st.step):
         st.converged, st.best_state, st.stop = True, None, "constraints"  # this (corrected) iterate is the result
         return None
@@ -666,14 +666,19 @@ def converged(problem: FieldProblem, st: LoopState) -> bool:
 
 @contextlib.contextmanager
 def deterministic_algorithms() -> Iterator[None]:
-    """Use torch's deterministic kernels (reproducible runs and resumes), restoring the setting."""
+    """Use torch's deterministic kernels (reproducible runs and resumes), restoring the settings. The memory of a
+    new tensor is not filled with NaN first (torch's default with deterministic kernels, a debugging aid: every
+    operation here writes all of its output, so the values are the same, without a pass over each new array)."""
     enabled = torch.are_deterministic_algorithms_enabled()
     warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    fill = torch.utils.deterministic.fill_uninitialized_memory
     torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.utils.deterministic.fill_uninitialized_memory = False
     try:
         yield
     finally:
         torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
+        torch.utils.deterministic.fill_uninitialized_memory = fill
 
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 import torch
@@ -62,6 +63,8 @@ class FieldProblem:
         self.b_areas_t = T(self.b_areas)
         knn = np.asarray(samples.knn, dtype=np.int64)
         self.b_knn_t = T(knn[active], torch.int64)
+        self.b_offsets_t = (L.neighbour_offsets(self.b_points_t, self.b_knn_t, self.b_all_t)  # L_PO's, fixed
+                            if self.b_knn_t.numel() else None)
         if len(active) and knn.size:
             dist = np.linalg.norm(pts[knn[active]] - pts[active][:, None, :], axis=2)
             self.po_length = float(max(dist.mean(), 1e-12))
@@ -85,6 +88,10 @@ class FieldProblem:
         self.last_check: dict[str, float] = {}
         #: the constraint stop accepts at least this overhang fraction (a warm start's own, see optimise_field)
         self.overhang_floor = 0.0
+        #: (networks, their weights' versions, G, grad G) of the last field computed (see :meth:`field`)
+        self._last_field: tuple[weakref.ref, tuple[int, ...], torch.Tensor, torch.Tensor] | None = None
+        #: search L_GC's pairs on the next evaluation's own field, before its terms (see :meth:`schedule_refresh`)
+        self._refresh_due = False
 
     def _head_collision(self, pool: CollisionPool | None, solid_tets: np.ndarray | None) -> HeadCollision | None:
         """L_GC on the pool of solid points and the floor tets (None when its weight is 0); the pool is required
@@ -135,14 +142,32 @@ class FieldProblem:
         return base + ("tb",) if self.tilt_bound is not None else base
 
     def field(self, fields: DeformationFields) -> tuple[torch.Tensor, torch.Tensor]:
-        """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph."""
+        """(G at the cage vertices (n,), grad G per tet (m,3)) for the current weights, without a graph; the last
+        field computed (here or by an evaluation) again while the weights are unchanged (a check step asks for it
+        up to three times)."""
+        last = self._last_field
+        if last is not None and last[0]() is fields and last[1] == weights_version(fields):
+            return last[2], last[3]
         with torch.no_grad():
             G, _, _ = self.height(fields)
-            return G, field_gradient(G, self.tets_t, self.bary_grads_t)
+            grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+        return self._remember_field(fields, G, grad)
+
+    def _remember_field(self, fields: DeformationFields, G: torch.Tensor, grad: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keep G (n,) and grad G (m,3) of these networks' current weights for :meth:`field`; them, detached."""
+        self._last_field = (weakref.ref(fields), weights_version(fields), G.detach(), grad.detach())
+        return self._last_field[2], self._last_field[3]
 
     def refresh_collisions(self, fields: DeformationFields) -> int:
         """Search the pairs near collision for the current weights (L_GC's active set); their number."""
+        self._refresh_due = False
         return 0 if self.head is None else self.head.refresh(*self.field(fields))
+
+    def schedule_refresh(self) -> None:
+        """Search L_GC's pairs on the field of the next evaluation (before its terms, as refresh_collisions before
+        it would, without a forward pass of its own)."""
+        self._refresh_due = self.head is not None
 
     def head_collisions(self, G: np.ndarray) -> dict[str, int]:
         """Collisions of the head over the whole pool for a field G (n,) at the cage vertices."""
@@ -162,22 +187,31 @@ class FieldProblem:
         q, s = fields(self.centroids_t)
         return self.arap.deformed_height(q, s), q, s
 
-    def evaluate(self, fields: DeformationFields) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """(total weighted loss, every term incl. L_CA) for the current network weights."""
-        total, terms, _ = self.evaluate_with_excess(fields)
+    def evaluate(self, fields: DeformationFields, remember: bool = True
+                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """(total weighted loss, every term incl. L_CA) for the current network weights (``remember``: its field is
+        the one :meth:`field` gives back while the weights stay as they are)."""
+        total, terms, _ = self.evaluate_with_excess(fields, remember)
         return total, terms
 
     def evaluate_with_excess(
-        self, fields: DeformationFields
+        self, fields: DeformationFields, remember: bool = True
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None]:
-        """(total, terms, per-pair collision excess angle (None when the collision term is off))."""
+        """(total, terms, per-pair collision excess angle (None when the collision term is off)). The excess has a
+        graph only when a pair violates L_CA = 0 (beyond ``loss.correction_tol``: the DC3 correction follows), the
+        total is free of it. A scheduled search for L_GC's pairs runs on this field first."""
         cl = self.config.loss
         G, q, s = self.height(fields)
         grad = field_gradient(G, self.tets_t, self.bary_grads_t)
+        if remember:
+            self._remember_field(fields, G, grad)
+        if self._refresh_due:
+            self._refresh_due = False
+            self.head.refresh(G.detach(), grad.detach())
         d = unit(grad)
         terms: dict[str, torch.Tensor] = {}
         zero = G.new_zeros(())
-        d_b = d[self.b_tet_t]
+        d_b = d.index_select(0, self.b_tet_t)
         terms["sf"] = (L.support_free_loss(d_b, self.b_normals_t, self.b_areas_t,
                                            math.radians(cl.alpha_deg), cl.k_sf)
                        if cl.w_sf > 0 else zero)
@@ -185,14 +219,17 @@ class FieldProblem:
                                        math.radians(cl.beta_deg), cl.k_sr)
                        if cl.w_sr > 0 and len(self.t_tet) else zero)
         terms["po"] = (L.point_overhang_loss(d_b, self.b_points_t, self.b_knn_t, self.b_all_t,
-                                             self.b_areas_t, self.po_length)
+                                             self.b_areas_t, self.po_length, self.b_offsets_t)
                        if cl.w_po > 0 and self.b_knn_t.numel() else zero)
         terms["hs"] = L.harmonic_scale_loss(s, self.pairs_t, self.pair_weights_t) if cl.w_hs > 0 else zero
         terms["hq"] = L.harmonic_quaternion_loss(q, self.pairs_t, self.pair_weights_t) if cl.w_hq > 0 else zero
         terms["gc"] = self.head.loss(G, grad) if self.head is not None else zero
         excess = None
         if cl.collision:
-            excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
+            with torch.no_grad():
+                excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
+            if bool((excess > cl.correction_tol).any()):  # a correction follows: the excess with its graph
+                excess = L.collision_excess(grad, self.pairs_t, self.pair_normals_t, self.phi)
             terms["ca"] = torch.relu(excess).mean() if excess.numel() else zero
         else:
             terms["ca"] = zero
@@ -311,6 +348,12 @@ class FieldProblem:
         if len(self.t_tet):
             out["sr_satisfied_fraction"] = strength_satisfaction(self.t_tau, self.t_volumes, lpd[self.t_tet], cl.beta_deg)
         return out
+
+
+def weights_version(fields: DeformationFields) -> tuple[int, ...]:
+    """The version counters of the networks' parameters and buffers: any change of a weight in place (an Adam or
+    DC3 step, a state dict loaded) changes them."""
+    return tuple(t._version for t in (*fields.parameters(), *fields.buffers()))
 
 
 def tilt_angles_deg(directions: np.ndarray) -> np.ndarray:
