@@ -34,6 +34,14 @@ def test_a_04_nozzle_prints_ordinary_layers_and_lines() -> None:
         assert big == pytest.approx(tuple(2 * v for v in small) if isinstance(rule, tuple) else 2 * small)
 
 
+def test_a_nozzle_without_a_diameter_is_the_papers() -> None:
+    n = Nozzle(cone_half_angle_deg=40.0)             # a profile written before nozzles had a diameter
+    assert (n.diameter_mm, n.layer_height_mm, n.layer_thickness_mm, n.line_width_mm) == (1.0, 0.8, (0.4, 1.0), 0.5)
+    assert (n.bead_thickness_mm, n.bead_width_mm) == ((0.15, 1.2), (0.3, 1.0))
+    assert Nozzle(**n.model_dump()) == n             # the filled values survive a round trip
+    assert Nozzle(diameter_mm=1.0).layer_height_mm == 0.5      # a diameter given: the ordinary rules
+
+
 def test_the_shipped_profiles_nozzles() -> None:
     nozzles = {name: load_profile(name).nozzle for name in profile_names()}
     for name in ("reprap_5axis", "table_head_bc_reprap", "three_axis_reprap"):

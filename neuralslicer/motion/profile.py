@@ -153,20 +153,23 @@ class Extrusion(_Model):
 
 
 #: what a profile leaves out of its nozzle follows from ``diameter_mm`` by the rules of ordinary slicers (a 0.4 mm
-#: nozzle: 0.2 mm layers in 0.1-0.3 mm, 0.45 mm lines), as multiples of the diameter. The paper's 1.0 mm nozzle
-#: prints thicker layers and thinner lines than these rules give: its profiles state the paper's values.
+#: nozzle: 0.2 mm layers in 0.1-0.3 mm, 0.45 mm lines), as multiples of the diameter.
 NOZZLE_RULES: dict[str, float | tuple[float, float]] = {
     "layer_height_mm": 0.5, "layer_thickness_mm": (0.25, 0.75), "line_width_mm": 1.125,
     "bead_thickness_mm": (0.125, 1.0), "bead_width_mm": (0.75, 2.0)}
+#: a nozzle without a diameter is the paper's: 1.0 mm, printing thicker layers and thinner lines than the rules give
+PAPER_NOZZLE: dict[str, float | tuple[float, float]] = {
+    "diameter_mm": 1.0, "layer_height_mm": 0.8, "layer_thickness_mm": (0.4, 1.0), "line_width_mm": 0.5,
+    "bead_thickness_mm": (0.15, 1.2), "bead_width_mm": (0.3, 1.0)}
 
 
 class Nozzle(_Model):
     """The nozzle: its diameter, the layers and lines it prints, and the head around it for collision checks (a
     cone with its apex at the tool tip, then a holder cylinder). Values left out follow from the diameter
-    (``NOZZLE_RULES``)."""
+    (``NOZZLE_RULES``); without a diameter it is the paper's nozzle (``PAPER_NOZZLE``)."""
 
-    #: the nozzle's bore (mm).
-    diameter_mm: float = Field(1.0, gt=0, le=5)
+    #: the nozzle's bore (mm); null: the paper's 1.0 mm nozzle with the paper's layers and lines.
+    diameter_mm: float | None = Field(None, gt=0, le=5)
     #: target layer thickness (mm): the slice's ``layers.layer_height`` unless the configuration sets it.
     layer_height_mm: float | None = Field(None, gt=0)
     #: smallest and largest local layer thickness the layers aim for (mm): ``layers.t_min`` / ``t_max``.
@@ -188,8 +191,11 @@ class Nozzle(_Model):
         d = self.diameter_mm
         for name, rule in NOZZLE_RULES.items():
             if getattr(self, name) is None:
-                object.__setattr__(self, name, tuple(round(r * d, 6) for r in rule) if isinstance(rule, tuple)
-                                   else round(rule * d, 6))
+                value = PAPER_NOZZLE[name] if d is None else \
+                    tuple(round(r * d, 6) for r in rule) if isinstance(rule, tuple) else round(rule * d, 6)
+                object.__setattr__(self, name, value)
+        if d is None:
+            object.__setattr__(self, "diameter_mm", PAPER_NOZZLE["diameter_mm"])
         for name in ("layer_thickness_mm", "bead_thickness_mm", "bead_width_mm"):
             lo, hi = getattr(self, name)
             if not 0 < lo < hi:
