@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import time
@@ -33,7 +34,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 EXAMPLE = HERE.parent / "neuralslicer" / "examples" / "paper_bridge" / "model.yaml"
-MIRROR = Path("/work/.mirror/zhangty019+S3_DeformFDM/repo")
+#: a clone (or bare mirror) of github.com/zhangty019/S3_DeformFDM, where --s3-result is not given
+S3_REPO_ENV = "S3_DEFORMFDM_REPO"
 S3_RESULT = "DataSet/fem_result/bridgeSmall_new.txt"
 
 #: the other readings of the support (build frame, mm); the load stays the shipped one
@@ -48,9 +50,12 @@ def read_s3(path: str | None) -> np.ndarray:
     """S3's result as (n, 8): index, s1, sxx, syy, szz, sxy, sxz, syz."""
     if path:
         text = Path(path).read_text()
-    else:
-        text = subprocess.run(["git", "-C", str(MIRROR), "show", f"HEAD:{S3_RESULT}"], check=True,
+    elif os.environ.get(S3_REPO_ENV):
+        text = subprocess.run(["git", "-C", os.environ[S3_REPO_ENV], "show", f"HEAD:{S3_RESULT}"], check=True,
                               capture_output=True, text=True).stdout
+    else:
+        raise SystemExit(f"give S3's result file (--s3-result PATH/{S3_RESULT}) or {S3_REPO_ENV}=a clone of "
+                         "github.com/zhangty019/S3_DeformFDM")
     return np.loadtxt(text.splitlines(), delimiter=",")
 
 
@@ -129,7 +134,7 @@ def compare(ours: dict, s3: dict) -> dict:
 def main() -> None:
     """Run the cases, print the comparison, write the JSON."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--s3-result", help=f"S3's {S3_RESULT} (default: read from the S3_DeformFDM mirror)")
+    ap.add_argument("--s3-result", help=f"S3's {S3_RESULT} (default: from the clone ${S3_REPO_ENV} names)")
     ap.add_argument("--cases", default="shipped,ends,bottom")
     args = ap.parse_args()
     s3 = figures(s3_tensors(read_s3(args.s3_result)))

@@ -3,7 +3,7 @@
 
     python benchmarks/bench_step.py                       # median step, per-part breakdown, threads 2 then 1
     python benchmarks/bench_step.py --threads 2 --steps 20 --warmup 5
-    python benchmarks/bench_step.py --cage-cache /tmp/c.npz   # reuse (or write) the cage there
+    python benchmarks/bench_step.py --cage-cache CAGE.npz     # reuse (or write) the cage there
     PYTHONPATH=/path/to/old/tree python benchmarks/bench_step.py --label before   # another tree's step, same JSON
 
 The process is set up as the command sets itself up (``GOMP_SPINCOUNT``, the allocator). The cage is built
@@ -23,6 +23,7 @@ import json
 import os
 import platform
 import statistics
+import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--model", default=str(DATA / "topopt_new4.tet"))
     p.add_argument("--up", default="y")
     p.add_argument("--elements", type=int, default=47_000)
-    p.add_argument("--cage-cache", default="/tmp/bench_step_cage_topopt_new4_47000.npz")
+    p.add_argument("--cage-cache", default=str(Path(tempfile.gettempdir()) / "bench_step_cage_topopt_new4_47000.npz"))
     p.add_argument("--threads", type=int, nargs="+", default=[2, 1])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=5)
