@@ -58,10 +58,19 @@ def cli_env(tmp_path: Path, own_server: bool = False) -> dict[str, str]:
     return env
 
 
+def _as_a_shell_starts_it() -> None:
+    """In the command's process before it starts: Ctrl-C's default action and no signal blocked, as a terminal's shell
+    starts a command. A child inherits both from this test process, where other tests' libraries may have changed
+    them; a command started with SIGINT ignored or blocked (as a shell's background job is) rightly keeps running."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_SETMASK, [])
+
+
 def cli(args: list[str], env: dict[str, str], **kwargs) -> subprocess.Popen:
     """`python -m neuralslicer.cli ARGS` in its own process group (a kill takes its children too)."""
     return subprocess.Popen([sys.executable, "-m", "neuralslicer.cli", *args], cwd=REPO, env=env, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kwargs)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_as_a_shell_starts_it, **kwargs)
 
 
 def test_two_fresh_stores_give_the_same_cage_and_metrics(case, tmp_path):
