@@ -14,7 +14,6 @@ import contextlib
 import ipaddress
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,6 +22,7 @@ from collections.abc import Iterator
 from urllib.parse import urlsplit
 
 from neuralslicer.errors import NeuralSlicerError
+from neuralslicer.flows.local_api import free_port
 from neuralslicer.flows.settings import API_STARTUP_TIMEOUT_S
 
 #: the exit status of ``prefect server start`` when its port is taken meanwhile: pick another one
@@ -50,13 +50,6 @@ def server_host(dask: str) -> str:
     from distributed.utils import get_ip
 
     return get_ip(host)   # the local address of a route to the scheduler's host
-
-
-def free_port(host: str) -> int:
-    """A TCP port on ``host`` that nothing listens on now."""
-    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
 
 
 def _die_with_parent() -> None:

@@ -30,7 +30,7 @@ DASK = Path(sys.executable).with_name("dask")
 
 def _free_port() -> int:
     """A free TCP port on 127.0.0.1."""
-    from neuralslicer.flows.study_server import free_port
+    from neuralslicer.flows.local_api import free_port
 
     return free_port("127.0.0.1")
 
