@@ -67,7 +67,15 @@ class ArtifactStore:
             return
         if self.is_local:
             Path(self.root).mkdir(parents=True, exist_ok=True)
-        zarr.open_group(self.root, mode="a")
+        self._ensure_group("")
+
+    def _ensure_group(self, path: str) -> None:
+        """Create a group unless it exists, safe against another process creating it at the same moment
+        (zarr's mode "a" checks, then creates: the loser of that race sees ContainsGroupError)."""
+        try:
+            zarr.open_group(self.root, mode="a", path=path)
+        except zarr.errors.ContainsGroupError:
+            zarr.open_group(self.root, mode="r+", path=path)
 
     def _group(self, path: str, mode: str = "r") -> zarr.Group:
         """Open a group of the store."""
@@ -103,7 +111,7 @@ class ArtifactStore:
             shutil.rmtree(trash, ignore_errors=True)
         else:
             if "/" in path:
-                zarr.open_group(self.root, mode="a", path=path.rsplit("/", 1)[0])
+                self._ensure_group(path.rsplit("/", 1)[0])
             os.replace(src, dst)
 
     def _write_group(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any], kind: str) -> None:

@@ -137,6 +137,28 @@ def test_locks_name_host_and_pid_and_are_taken_over_only_when_abandoned(tmp_path
         assert time.time() - g.stat().st_mtime < 5
 
 
+def _open_store_and_write(args: tuple[str, int]) -> str:
+    """Open (creating) the store and write one group under a shared model group; the error's name if any."""
+    root, i = args
+    try:
+        ArtifactStore(root).write(f"model/step{i}", {"x": np.arange(3)})
+        return "ok"
+    except Exception as exc:  # noqa: BLE001 - the test counts them
+        return type(exc).__name__
+
+
+def test_processes_creating_one_store_at_once_all_succeed(tmp_path):
+    """Runs started together on a fresh --store: zarr's check-then-create loses the race with
+    ContainsGroupError (measured: 72 of 240 openings failed before the fix); the store absorbs it."""
+    import multiprocessing
+
+    with multiprocessing.get_context("fork").Pool(8) as pool:
+        for trial in range(10):
+            root = str(tmp_path / f"s{trial}.zarr")
+            assert pool.map(_open_store_and_write, [(root, i) for i in range(8)]) == ["ok"] * 8
+            assert ArtifactStore(root, create=False).children("model") == sorted(f"step{i}" for i in range(8))
+
+
 def test_reading_never_creates_a_store(tmp_path):
     from neuralslicer.tasks.codec import read
 
