@@ -9,7 +9,7 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -98,7 +98,7 @@ class RunResults:
     attempts: list[Attempt] = field(default_factory=list)
     strength_rounds: list[StrengthRound] = field(default_factory=list)
     #: the program step's G-code (None: written from ``program`` here)
-    gcode: bytes | None = None
+    gcode: bytes | Iterable[bytes] | None = None
 
     @cached_property
     def lpd_b(self) -> np.ndarray:
@@ -497,7 +497,8 @@ def _quiet(_: Any) -> dict[str, str]:
 
 
 def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
-                        *, robot: bool = False, vtp: bool = True, png: bool = True, gcode: bytes | None = None,
+                        *, robot: bool = False, vtp: bool = True, png: bool = True,
+                        gcode: bytes | Iterable[bytes] | None = None,
                         csv: bool = True) -> dict[str, Path]:
     """Write ``toolpaths/waypoints.csv`` (if ``csv``), ``print.gcode``, ``toolpaths.vtp``, ``toolpaths.png``,
     ``robot_waypoints.csv``/``.json`` and compas_slicer's ``printpoints.json`` (if ``robot``) and

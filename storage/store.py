@@ -10,7 +10,7 @@ import threading
 import time
 import uuid
 import warnings
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,7 +19,7 @@ import numpy as np
 import zarr
 
 from neuralslicer.fileio import to_json
-from neuralslicer.storage.layout import chunk_shape, compressor, group_dimensions, group_kind
+from neuralslicer.storage.layout import CHUNK_BYTES, chunk_shape, compressor, group_dimensions, group_kind
 
 COMPLETE = "_complete"
 STAGING = "_staging"
@@ -48,6 +48,35 @@ def groups_used(refs: Mapping[str, ArtifactRef | None]) -> dict[str, str]:
     """The group path of each step a run used (the steps it skipped left out): what run.json can list so that a
     reader opens the run's arrays (``xarray.open_zarr(store, group=path)``) without searching the store."""
     return {step: ref.path for step, ref in refs.items() if ref is not None}
+
+
+@dataclass(frozen=True)
+class ArrayStream:
+    """A 1-D array written as it is produced: ``parts`` concatenated, each part written as soon as a chunk fills (a
+    G-code program of any size, never whole in memory). The group's attributes are taken after its arrays are
+    written, so the producer may complete them (its wall time) when its parts run out."""
+
+    dtype: np.dtype
+    parts: Iterable[np.ndarray]
+
+    def write_into(self, group: zarr.Group, name: str, dimension: str) -> None:
+        """Create the array ``name`` in ``group`` and append the parts, whole chunks at a time."""
+        dtype = np.dtype(self.dtype)
+        rows = max(1, CHUNK_BYTES // dtype.itemsize)
+        array = group.create_array(name, shape=(0,), dtype=dtype, dimension_names=(dimension,), chunks=(rows,),
+                                   compressors=compressor(dtype), overwrite=True)
+        pending: list[np.ndarray] = []
+        n_pending = 0
+        for part in self.parts:
+            pending.append(np.asarray(part, dtype).ravel())
+            n_pending += len(pending[-1])
+            if n_pending >= rows:
+                joined = np.concatenate(pending)
+                full = len(joined) - len(joined) % rows
+                array.append(joined[:full])
+                pending, n_pending = [joined[full:]], len(joined) - full
+        if n_pending:
+            array.append(np.concatenate(pending))
 
 
 class ArtifactStore:
@@ -92,12 +121,13 @@ class ArtifactStore:
         except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, ValueError):
             return False
 
-    def write(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any] | None = None) -> None:
+    def write(self, path: str, arrays: Mapping[str, np.ndarray | ArrayStream], attrs: Mapping[str, Any] | None = None
+              ) -> None:
         """Write a group atomically: staged and renamed into place locally, marked complete last.
 
         Two processes that may write the same path hold `lock(path)` around the write.
         """
-        attrs = {**to_json(dict(attrs or {})), "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        attrs = {} if attrs is None else attrs
         if not self.is_local:
             self._write_group(path, arrays, attrs, group_kind(path))
             return
@@ -114,18 +144,23 @@ class ArtifactStore:
                 self._ensure_group(path.rsplit("/", 1)[0])
             os.replace(src, dst)
 
-    def _write_group(self, path: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any], kind: str) -> None:
-        """Write arrays (named dimensions of a group of this ``kind``, chosen chunks and codecs) then attributes,
-        then the group's consolidated metadata, the completion flag last."""
+    def _write_group(self, path: str, arrays: Mapping[str, np.ndarray | ArrayStream], attrs: Mapping[str, Any],
+                     kind: str) -> None:
+        """Write arrays (named dimensions of a group of this ``kind``, chosen chunks and codecs; streams as they come)
+        then attributes (read only now), then the group's consolidated metadata, the completion flag last."""
         group = zarr.open_group(self.root, mode="w", path=path)
-        data = {name: np.ascontiguousarray(value) for name, value in arrays.items()}
-        dims = group_dimensions(kind, {name: d.shape for name, d in data.items()})
+        streams = {name: value for name, value in arrays.items() if isinstance(value, ArrayStream)}
+        data = {name: np.ascontiguousarray(value) for name, value in arrays.items() if name not in streams}
+        dims = group_dimensions(kind, {**{name: d.shape for name, d in data.items()}, **{name: (0,) for name in streams}})
+        for name, stream in streams.items():
+            stream.write_into(group, name, dims[name][0])
         for name, d in data.items():
             if d.dtype == object:
                 raise TypeError(f"array {name!r} has dtype object")
             group.create_array(name, data=d, dimension_names=dims[name], chunks=chunk_shape(d.shape, d.dtype.itemsize),
                                compressors=compressor(d.dtype), overwrite=True)
-        group.attrs.update({**attrs, COMPLETE: False})
+        group.attrs.update({**to_json(dict(attrs)), "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                            COMPLETE: False})
         with warnings.catch_warnings():  # zarr: consolidated metadata is not yet in the v3 specification
             warnings.simplefilter("ignore", zarr.errors.ZarrUserWarning)
             group = zarr.consolidate_metadata(self.root, path=path)
@@ -136,11 +171,23 @@ class ArtifactStore:
         if not self.exists(path):
             raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
         group = self._group(path)
-        if names is None:
-            keys = [k for k, v in group.members(max_depth=None) if isinstance(v, zarr.Array)]
-        else:
-            keys = names
+        keys = self.array_names(path) if names is None else names
         return {k: np.asarray(group[k][...]) for k in keys}, dict(group.attrs)
+
+    def array_names(self, path: str) -> list[str]:
+        """Names of the arrays of a complete group (nested ones as ``a/b``)."""
+        if not self.exists(path):
+            raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
+        return [k for k, v in self._group(path).members(max_depth=None) if isinstance(v, zarr.Array)]
+
+    def read_slices(self, path: str, name: str, length: int) -> Iterator[np.ndarray]:
+        """An array of a complete group, ``length`` items along its first axis at a time (a large array read in
+        bounded memory)."""
+        if not self.exists(path):
+            raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
+        array = self._group(path)[name]
+        for start in range(0, array.shape[0], length):
+            yield np.asarray(array[start:start + length])
 
     def attrs(self, path: str) -> dict[str, Any]:
         """Attributes of a complete group."""

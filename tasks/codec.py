@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -97,14 +99,41 @@ def encode_motion(tp: Toolpaths, program: MachineProgram, metrics: dict, collisi
     return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
 
 
+def read_machine_program(ref: ArtifactRef) -> MachineProgram:
+    """The machine program of a stored print alone (not its toolpaths or collisions)."""
+    store = ArtifactStore(ref.store, create=False)
+    names = [k for k in store.array_names(ref.path) if k.startswith("program/")]
+    arrays, attrs = store.read(ref.path, names)
+    return MachineProgram.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()}, attrs["program"])
+
+
 def read_toolpaths(ref: ArtifactRef) -> Toolpaths:
     """The toolpaths step's waypoints."""
     return Toolpaths.from_arrays(*read(ref))
 
 
-def read_program(ref: ArtifactRef) -> bytes:
-    """The program step's G-code."""
-    return read(ref, ["gcode"])[0]["gcode"].tobytes()
+#: bytes of G-code read from the store at a time
+GCODE_CHUNK_BYTES = 16 << 20
+
+
+@dataclass(frozen=True)
+class StoredBytes:
+    """Bytes kept in the store (a uint8 array), read in chunks each time they are iterated: a 600 MB program
+    is written out without ever being whole in memory."""
+
+    ref: ArtifactRef
+    name: str
+    chunk_bytes: int = GCODE_CHUNK_BYTES
+
+    def __iter__(self) -> Iterator[bytes]:
+        """The bytes, a chunk at a time."""
+        for part in ArtifactStore(self.ref.store, create=False).read_slices(self.ref.path, self.name, self.chunk_bytes):
+            yield part.tobytes()
+
+
+def read_program(ref: ArtifactRef) -> StoredBytes:
+    """The program step's G-code, read a chunk at a time when iterated."""
+    return StoredBytes(ref, "gcode")
 
 
 def read_motion(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:

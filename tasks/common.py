@@ -5,10 +5,10 @@ import functools
 import inspect
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from prefect import task
 from prefect.context import TaskRunContext
@@ -18,8 +18,10 @@ from prefect.states import State
 
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.provenance import package_versions
-from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
+from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore, digest
 from neuralslicer.tasks.progress import say
+
+T = TypeVar("T")
 
 def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
     """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""
@@ -108,6 +110,12 @@ def run_step(task_: Any, **parameters: Any) -> State:
     return task_(**parameters, return_state=True)
 
 
+def then(parts: Iterable[T], finish: Callable[[], None]) -> Iterator[T]:
+    """``parts``, then ``finish()`` once they run out."""
+    yield from parts
+    finish()
+
+
 def pipeline_task(
     step: str,
     version: str,
@@ -138,9 +146,19 @@ def pipeline_task(
                 start = time.perf_counter()
                 say(f"{step}: started")
                 arrays, attrs = fn(out=out, **params)
-                wall = time.perf_counter() - start
-                say(f"{step}: done in {wall:.1f} s")
-                return arrays, {**attrs, "step": step, "wall_s": wall, "versions": package_versions()}
+                record = {**attrs, "step": step, "versions": package_versions()}
+
+                def done() -> None:
+                    """The step's wall time, once its arrays are made (streamed ones too)."""
+                    record["wall_s"] = time.perf_counter() - start
+                    say(f"{step}: done in {record['wall_s']:.1f} s")
+
+                streams = {k: v for k, v in arrays.items() if isinstance(v, ArrayStream)}
+                if streams:   # the store writes them first and reads the attributes after
+                    arrays = {**arrays, **{k: ArrayStream(v.dtype, then(v.parts, done)) for k, v in streams.items()}}
+                else:
+                    done()
+                return arrays, record
 
             try:
                 ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))

@@ -2,6 +2,8 @@
 return what to store."""
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from prefect import get_run_logger
 
@@ -17,9 +19,9 @@ from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.samples import surface_samples
 from neuralslicer.toolpath.config import ToolpathConfig
-from neuralslicer.storage import ArtifactRef
+from neuralslicer.storage import ArrayStream, ArtifactRef
 from neuralslicer.storage.content_cache import ContentCache, cache_root
-from neuralslicer.tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_motion,
+from neuralslicer.tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_machine_program,
                          read_part_collisions, read_samples, read_solid, read_stress, read_toolpaths, read_user_field)
 from neuralslicer.tasks.common import pipeline_task
 from neuralslicer.tasks.progress import Progress, say
@@ -175,10 +177,18 @@ def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: Art
 
 @pipeline_task("program", version="1")
 def program_task(out: ArtifactRef, store: str, motion: ArtifactRef) -> tuple[dict, dict]:
-    """The machine program as G-code in the profile's dialect."""
-    from neuralslicer.gcode.writers import gcode_bytes
+    """The machine program as G-code in the profile's dialect, streamed into the store a layer at a time."""
+    from neuralslicer.gcode.writers import gcode_chunks
 
-    _, program, _ = read_motion(motion)
-    text = gcode_bytes(program)
-    get_run_logger().info("program: %s G-code, %.1f MB", program.profile.gcode.dialect, len(text) / 1e6)
-    return {"gcode": np.frombuffer(text, np.uint8)}, {"dialect": program.profile.gcode.dialect, "bytes": len(text)}
+    program = read_machine_program(motion)
+    logger = get_run_logger()
+
+    def parts() -> Iterator[np.ndarray]:
+        """The G-code's chunks as bytes; logs its size at the end."""
+        n = 0
+        for chunk in gcode_chunks(program):
+            n += len(chunk)
+            yield np.frombuffer(chunk, np.uint8)
+        logger.info("program: %s G-code, %.1f MB", program.profile.gcode.dialect, n / 1e6)
+
+    return {"gcode": ArrayStream(np.dtype(np.uint8), parts())}, {"dialect": program.profile.gcode.dialect}

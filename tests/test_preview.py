@@ -107,6 +107,50 @@ def test_decimation_fits_the_budget_and_keeps_the_shape() -> None:
     assert data.factor == pytest.approx(data.n_drawable / len(data))
 
 
+def test_decimation_in_chunks_is_the_decimation_of_the_whole(monkeypatch) -> None:
+    """Chunks meet at kept moves, so a print simplified a few hundred moves at a time (bounded memory) keeps the same
+    moves, levels, values and deviations as one simplified whole; the merged feeds and widths are exact sums."""
+    import neuralslicer.preview.data as data
+
+    attrs = synthetic_moves(n_turns=6, per_turn=1500)
+    collided = np.array([100, 2500, 7000])
+    monkeypatch.setattr(data, "CHUNK_MOVES", 10**9)
+    whole = decimate(attrs, collided, max_points=1200, draw_budget=300)
+    assert len(data.spans(np.ones(len(attrs.tip), bool))) == 1
+    monkeypatch.setattr(data, "CHUNK_MOVES", 700)
+    fixed = data.run_ends(attrs.kind, attrs.layer)
+    assert len(data.spans(fixed)) > 5                       # chunks end on the runs' ends, several per layer
+    chunked = decimate(attrs, collided, max_points=1200, draw_budget=300)
+    for name in ("move", "tip", "axis", "layer", "kind", "tilt_deg", "level", "collisions", "feed_mm_s", "width_mm"):
+        assert np.array_equal(getattr(whole, name), getattr(chunked, name)), name
+    assert whole.max_deviation_mm == chunked.max_deviation_mm
+    assert chunked.mean_deviation_mm == pytest.approx(whole.mean_deviation_mm, rel=1e-12)
+    import math
+
+    draw = np.flatnonzero(attrs.kind != RETRACT)
+    at = np.searchsorted(draw, chunked.move)                   # kept moves among the drawn ones
+    for j in range(1, len(at)):                                # each kept move stands for those merged into it
+        merged = draw[at[j - 1] + 1:at[j] + 1]
+        span, dt = math.fsum(attrs.length_mm[merged]), math.fsum(attrs.time_s[merged])
+        assert chunked.feed_mm_s[j] == (pytest.approx(span / dt, rel=1e-12) if dt > 1e-12 else 0.0)
+        width = math.fsum(attrs.length_mm[merged] * attrs.width_mm[merged]) / span if span > 1e-12 else attrs.width_mm[
+            chunked.move[j]]
+        assert chunked.width_mm[j] == pytest.approx(width, rel=1e-12)
+
+
+def test_spans_cover_the_polyline_and_meet_at_fixed_points() -> None:
+    """Consecutive chunks share their boundary point, which is fixed (or the last point); together they cover all."""
+    from neuralslicer.preview.data import spans
+
+    fixed = np.zeros(1000, bool)
+    fixed[[0, 130, 260, 261, 500, 999]] = True
+    chunks = spans(fixed, size=200)
+    assert chunks[0][0] == 0 and chunks[-1][1] == 999
+    assert all(a < e for a, e in chunks) and all(e == a2 for (_, e), (a2, _) in zip(chunks[:-1], chunks[1:]))
+    assert all(fixed[e] for _, e in chunks)
+    assert spans(fixed[:1], size=200) == [(0, 0)] and spans(np.zeros(0, bool)) == []
+
+
 def test_detail_levels_are_nested_and_fit_the_draw_budget() -> None:
     """Each coarser level is a subset of the finer one, the coarsest within the draw budget, every run's ends and the
     collisions in every level; where the runs' ends alone exceed the budget, coarser levels draw every other layer."""

@@ -159,6 +159,40 @@ def test_processes_creating_one_store_at_once_all_succeed(tmp_path):
             assert ArtifactStore(root, create=False).children("model") == sorted(f"step{i}" for i in range(8))
 
 
+def test_a_stream_is_written_as_it_comes_and_read_back_in_slices(tmp_path, monkeypatch):
+    """An ArrayStream's parts (any sizes) land as one array in whole chunks; the attributes are read after it, so the
+    producer can complete them; read_slices gives it back piece by piece; a producer that fails leaves no group."""
+    import neuralslicer.storage.store as store_module
+    from neuralslicer.storage import ArrayStream
+
+    monkeypatch.setattr(store_module, "CHUNK_BYTES", 64)
+    rng = np.random.default_rng(0)
+    parts = [rng.integers(0, 255, n, dtype=np.uint8) for n in (0, 5, 64, 100, 1, 300, 63)]
+    attrs: dict = {"dialect": "linuxcnc"}
+
+    def produce():
+        yield from parts
+        attrs["bytes"] = sum(len(p) for p in parts)
+
+    store = ArtifactStore(tmp_path / "s.zarr")
+    store.write("m/program/a", {"gcode": ArrayStream(np.dtype(np.uint8), produce()), "other": np.arange(4)}, attrs)
+    arrays, back = store.read("m/program/a")
+    assert np.array_equal(arrays["gcode"], np.concatenate(parts)) and back["bytes"] == 533
+    assert np.array_equal(arrays["other"], np.arange(4))
+    assert zarr.open_array(str(tmp_path / "s.zarr" / "m/program/a/gcode")).chunks == (64,)
+    pieces = list(store.read_slices("m/program/a", "gcode", 100))
+    assert [len(p) for p in pieces] == [100] * 5 + [33]
+    assert np.array_equal(np.concatenate(pieces), arrays["gcode"])
+
+    def broken():
+        yield parts[3]
+        raise RuntimeError("the producer failed")
+
+    with pytest.raises(RuntimeError, match="producer failed"):
+        store.write("m/program/b", {"gcode": ArrayStream(np.dtype(np.uint8), broken())})
+    assert not store.exists("m/program/b") and store.children("m/program") == ["a"]
+
+
 def test_reading_never_creates_a_store(tmp_path):
     from neuralslicer.tasks.codec import read
 

@@ -124,6 +124,32 @@ def test_round_trips(tmp_path, box_paths):
     assert not list(tmp_path.glob(".*"))   # no temporary files left
 
 
+def test_files_of_a_large_print_are_written_in_chunks(tmp_path, box_paths, monkeypatch):
+    """The CSV is formatted a few rows at a time (bounded memory) and reads the same bytes as written whole; the VTP's
+    polylines are runs of extruding waypoints with the travel waypoint before each, as a loop over them builds."""
+    import neuralslicer.toolpath.io as io
+
+    _, tp = box_paths
+    whole = write_waypoints_csv(tmp_path / "whole.csv", tp).read_bytes()
+    monkeypatch.setattr(io, "CSV_CHUNK_ROWS", 7)
+    assert write_waypoints_csv(tmp_path / "chunked.csv", tp).read_bytes() == whole
+    assert whole.count(b"\n") == len(tp) + 1
+    lines, first = io._polylines(tp)
+    expected, starts, current = [], [], []
+    for i in range(len(tp)):
+        if not tp.extrude[i]:
+            if len(current) > 1 or (current and tp.extrude[current[-1]]):
+                expected += [len(current), *current]
+                starts.append(current[0])
+            current = [i] if i + 1 < len(tp) and tp.extrude[i + 1] else []
+        else:
+            current.append(i)
+    if current:
+        expected += [len(current), *current]
+        starts.append(current[0])
+    assert lines.tolist() == expected and first.tolist() == starts
+
+
 def test_user_errors():
     with pytest.raises(InputError):
         toolpaths([], platform_z=0.0)

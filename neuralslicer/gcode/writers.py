@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -377,9 +377,15 @@ def gcode_bytes(program: MachineProgram) -> bytes:
     return b"".join(gcode_chunks(program))
 
 
-def write_gcode(path: str | Path, program: MachineProgram | bytes) -> Path:
-    """Write the program (or its G-code from :func:`gcode_bytes`) as G-code in its profile's dialect (atomic)."""
-    chunks = [program] if isinstance(program, bytes) else gcode_chunks(program)
+def write_gcode(path: str | Path, program: MachineProgram | bytes | Iterable[bytes]) -> Path:
+    """Write the program (or its G-code from :func:`gcode_bytes`, whole or in chunks) as G-code in its profile's
+    dialect (atomic)."""
+    if isinstance(program, bytes):
+        chunks: Iterable[bytes] = [program]
+    elif isinstance(program, MachineProgram):
+        chunks = gcode_chunks(program)
+    else:
+        chunks = program
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             for chunk in chunks:

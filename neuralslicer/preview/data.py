@@ -33,6 +33,9 @@ FLOOR_MM = 0.01
 MAX_ROUNDS = 64
 #: the share of ``max_points`` left to the repair (:func:`repaired`), and its rounds
 REPAIR_SHARE, REPAIR_ROUNDS = 0.15, 8
+#: moves per chunk of the simplification: chunks meet at kept moves, so the result does not depend on it; the memory
+#: of its temporaries does (about 200 bytes a move)
+CHUNK_MOVES = 250_000
 
 
 @dataclass
@@ -164,14 +167,35 @@ def deviations(tip: FloatArray, keep: BoolArray) -> FloatArray:
     return np.linalg.norm(tip - closest, axis=1)
 
 
-def _merged(cum: FloatArray, kept: IndexArray) -> FloatArray:
-    """Sum over the moves merged into each kept point: ``cum`` (a cumulative sum over the points) between the
-    previous kept point and this one (the first: its own value)."""
-    out = np.empty(len(kept))
-    if len(kept):
-        out[0] = cum[kept[0]] - (cum[kept[0] - 1] if kept[0] > 0 else 0.0)
-        out[1:] = np.diff(cum[kept])
-    return out
+def spans(fixed: BoolArray, size: int | None = None) -> list[tuple[int, int]]:
+    """Chunks (first, last), inclusive, of about ``size`` (default :data:`CHUNK_MOVES`) points that cover a polyline
+    of ``len(fixed)`` points: each ends at a ``fixed`` point (or the polyline's last) where the next one starts, so
+    no stretch between fixed points crosses two chunks."""
+    size = CHUNK_MOVES if size is None else size
+    m = len(fixed)
+    if m == 0:
+        return []
+    at = np.flatnonzero(fixed)
+    bounds = at[np.searchsorted(at, np.arange(size, m - 1, size))] if len(at) else np.zeros(0, np.int64)
+    bounds = np.unique(np.r_[0, bounds[bounds < m - 1], m - 1])
+    return [(int(a), int(e)) for a, e in zip(bounds[:-1], bounds[1:], strict=True)] or [(0, m - 1)]
+
+
+def deviation_summary(tip: FloatArray, keep: BoolArray, chunks: list[tuple[int, int]]) -> tuple[float, float]:
+    """The largest and the mean of :func:`deviations`, a chunk (:func:`spans`, meeting at kept points) at a time."""
+    largest, total = 0.0, 0.0
+    for a, e in chunks:
+        dev = deviations(tip[a:e + 1], keep[a:e + 1])
+        largest, total = max(largest, float(dev.max())), total + float(dev.sum())
+    return largest, total / max(len(tip), 1)
+
+
+def merged_sums(values: FloatArray, kept: IndexArray) -> FloatArray:
+    """Sum over the points merged into each kept point: ``values`` after the previous kept point up to this one
+    (the first: its own value)."""
+    if not len(kept):
+        return np.zeros(0)
+    return np.add.reduceat(values[:kept[-1] + 1], np.r_[kept[0], kept[:-1] + 1])
 
 
 def _distances(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
@@ -202,11 +226,17 @@ def farthest_per_stretch(tip: FloatArray, keep: BoolArray, candidates: IndexArra
     return candidates[at], far, candidates[mid], d[mid], stretch
 
 
-def significance(tip: FloatArray, fixed: BoolArray, floor_mm: float = FLOOR_MM, max_rounds: int = MAX_ROUNDS
-                 ) -> FloatArray:
+def significance(tip: FloatArray, fixed: BoolArray, floor_mm: float = FLOOR_MM, max_rounds: int = MAX_ROUNDS,
+                 chunks: list[tuple[int, int]] | None = None) -> FloatArray:
     """How much each point of a polyline matters (m,): inf for the ``fixed`` ones and its ends; else its distance
     from the chord of the stretch it split when the simplification (see the module) took it; 0 for those it left
-    within ``floor_mm`` of the lines."""
+    within ``floor_mm`` of the lines. ``chunks`` (:func:`spans` of ``fixed``): computed a chunk at a time, the same
+    result in a chunk's memory."""
+    if chunks is not None and len(chunks) > 1:
+        sig = np.empty(len(tip))
+        for a, e in chunks:
+            sig[a:e + 1] = significance(tip[a:e + 1], fixed[a:e + 1], floor_mm, max_rounds)
+        return sig
     m = len(tip)
     sig = np.zeros(m)
     keep = fixed.copy()
@@ -241,19 +271,27 @@ def most_significant(sig: FloatArray, budget: int) -> BoolArray:
 
 
 def repaired(tip: FloatArray, sig: FloatArray, keep: BoolArray, max_points: int, floor_mm: float = FLOOR_MM,
-             rounds: int = REPAIR_ROUNDS) -> BoolArray:
+             rounds: int = REPAIR_ROUNDS, chunks: list[tuple[int, int]] | None = None) -> BoolArray:
     """``keep`` with, round by round, the farthest point of every stretch between kept points farther than
     ``floor_mm`` from its chord added (the farthest stretches first), while at most ``max_points`` are kept: what
     the significance misjudged (a point taken early against a chord that the threshold dropped). Raises ``sig`` of the
-    points added to their distance (in place), so that the coarser levels rank them by it."""
+    points added to their distance (in place), so that the coarser levels rank them by it. ``chunks``
+    (:func:`spans`, meeting at kept points): the stretches found a chunk at a time, the same result."""
     keep = keep.copy()
+    chunks = chunks or [(0, len(tip) - 1)]
     for _ in range(rounds):
         room = max_points - int(keep.sum())
-        open_ = np.flatnonzero(~keep)
-        if room <= 0 or not len(open_):
+        if room <= 0:
             break
-        pts, far, _, _, _ = farthest_per_stretch(tip, keep, open_)
-        pts, far = pts[far > floor_mm], far[far > floor_mm]
+        found = []
+        for a, e in chunks:
+            open_ = np.flatnonzero(~keep[a:e + 1])
+            if len(open_):
+                pts, far, _, _, _ = farthest_per_stretch(tip[a:e + 1], keep[a:e + 1], open_)
+                found.append((pts[far > floor_mm] + a, far[far > floor_mm]))
+        if not found:
+            break
+        pts, far = np.concatenate([p for p, _ in found]), np.concatenate([f for _, f in found])
         if len(pts) > room:
             top = np.argpartition(-far, room - 1)[:room]
             pts, far = pts[top], far[top]
@@ -305,28 +343,31 @@ def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFA
     if n_collided > max_points // MARKED_SHARE:           # a print that hits everywhere: mark a sample, evenly
         marked = marked[np.linspace(0, n_collided - 1, max_points // MARKED_SHARE).astype(np.int64)]
     hit[np.searchsorted(draw, marked)] = True
-    sig = significance(tip, run_ends(kind, layer) | hit)
-    keep = repaired(tip, sig, most_significant(sig, int(max_points * (1 - REPAIR_SHARE))), max_points)
-    dev = deviations(tip, keep) if len(tip) else np.zeros(0)
+    fixed = run_ends(kind, layer) | hit
+    chunks = spans(fixed)
+    sig = significance(tip, fixed, chunks=chunks)
+    keep = repaired(tip, sig, most_significant(sig, int(max_points * (1 - REPAIR_SHARE))), max_points, chunks=chunks)
+    max_dev, mean_dev = deviation_summary(tip, keep, chunks)
     kept = np.flatnonzero(keep)
     moves = draw[kept]
-    length = attrs.length_mm[draw].copy()
+    length = attrs.length_mm[draw]
     if len(draw):
         length[0] = 0.0
-    time = attrs.time_s[draw].copy()
+    span = merged_sums(length, kept)
+    width = merged_sums(length * attrs.width_mm[draw], kept)
+    del length
+    time = attrs.time_s[draw]
     if len(draw):
         time[0] = 0.0
-    span = _merged(np.cumsum(length), kept)
-    dt = _merged(np.cumsum(time), kept)
-    width = _merged(np.cumsum(length * attrs.width_mm[draw]), kept)
+    dt = merged_sums(time, kept)
+    del time
     width = np.divide(width, span, out=attrs.width_mm[moves].copy(), where=span > 1e-12)
     feed = np.divide(span, dt, out=np.zeros(len(kept)), where=dt > 1e-12)
     level = detail_levels(sig[kept], layer[kept], hit[kept], draw_budget)
     return PreviewData(move=moves.astype(np.int64), tip=tip[kept], axis=attrs.axis[moves], layer=layer[kept],
                        kind=kind[kept], tilt_deg=attrs.tilt_deg[moves], feed_mm_s=feed, width_mm=width,
                        level=level, collisions=np.flatnonzero(hit[kept]).astype(np.int64),
-                       max_deviation_mm=float(dev.max()) if len(dev) else 0.0,
-                       mean_deviation_mm=float(dev.mean()) if len(dev) else 0.0, n_moves=n, n_drawable=len(draw),
+                       max_deviation_mm=max_dev, mean_deviation_mm=mean_dev, n_moves=n, n_drawable=len(draw),
                        draw_budget=draw_budget, n_collided=n_collided)
 
 

@@ -10,15 +10,20 @@ from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.fileio import atomic_path, save_vtk_xml
 
 CSV_COLUMNS = ("layer", "path", "x", "y", "z", "nx", "ny", "nz", "thickness", "width", "extrude")
+#: waypoints formatted at a time when writing the CSV (bounded memory for a print of any size)
+CSV_CHUNK_ROWS = 100_000
 
 
 def write_waypoints_csv(path: str | Path, tp: Toolpaths) -> Path:
     """Write ``layer,path,x,y,z,nx,ny,nz,thickness,width,extrude`` (one row per waypoint)."""
-    table = np.column_stack([tp.layer, tp.path, tp.xyz, tp.axis, tp.thickness, tp.width,
-                             tp.extrude.astype(np.int64)])
     fmt = ["%d", "%d", "%.6f", "%.6f", "%.6f", "%.7f", "%.7f", "%.7f", "%.6f", "%.6f", "%d"]
-    with atomic_path(path) as tmp:
-        np.savetxt(tmp, table, fmt=fmt, delimiter=",", header=",".join(CSV_COLUMNS), comments="")
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        fh.write(",".join(CSV_COLUMNS) + "\n")
+        for a in range(0, len(tp), CSV_CHUNK_ROWS):
+            b = a + CSV_CHUNK_ROWS
+            table = np.column_stack([tp.layer[a:b], tp.path[a:b], tp.xyz[a:b], tp.axis[a:b], tp.thickness[a:b],
+                                     tp.width[a:b], tp.extrude[a:b].astype(np.int64)])
+            np.savetxt(fh, table, fmt=fmt, delimiter=",")
     return Path(path)
 
 
@@ -47,11 +52,15 @@ def _polylines(tp: Toolpaths) -> tuple[np.ndarray, np.ndarray]:
     keep = idx[mask]
     if len(keep) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    r = run[keep]
-    b = np.flatnonzero(np.diff(r)) + 1
-    groups = np.split(keep, b)
-    lines = np.concatenate([np.concatenate([[len(g)], g]) for g in groups]).astype(np.int64)
-    return lines, np.array([g[0] for g in groups], np.int64)
+    first = np.r_[0, np.flatnonzero(np.diff(run[keep])) + 1]       # where each polyline starts in keep
+    sizes = np.diff(np.r_[first, len(keep)])
+    at = first + np.arange(len(first))                                # where its size goes in the lines array
+    lines = np.empty(len(keep) + len(first), np.int64)
+    lines[at] = sizes
+    points = np.ones(len(lines), bool)
+    points[at] = False
+    lines[points] = keep
+    return lines, keep[first].astype(np.int64)
 
 
 def write_toolpaths_vtp(path: str | Path, tp: Toolpaths) -> Path:
