@@ -101,6 +101,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     # a travel into a waypoint that collided itself shows only once the tilt has cleared that waypoint: lift it now
     tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material)
     lifted = _merged_lifts(lifted, again)
+    del material   # the beads' grid (~100 bytes a waypoint): the program and its timing need the room
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])

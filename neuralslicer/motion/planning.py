@@ -548,14 +548,14 @@ def feature_runs(program: MachineProgram, path: IndexArray, path_kinds: str) -> 
 def program_metrics(program: MachineProgram, times: tuple[FloatArray, FloatArray] | None = None) -> dict:
     """Totals of a program: time, path length, waypoints, material, filament (``times``: its
     ``timing.schedule`` when already computed)."""
-    xyz = program.part_xyz
-    seg = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    timed = program_time(program, times)     # first: its schedule's arrays are the largest the metrics need
+    seg = np.linalg.norm(np.diff(program.part_xyz, axis=0), axis=1)
     kind = program.kind[1:]
     de = np.diff(program.extruder)
     area = filament_area(program.profile)
     material = float(de[kind == PRINT].sum() * area / program.profile.extrusion.flow)
     return {
-        **program_time(program, times),
+        **timed,
         "toolpath_length_mm": float(seg[kind == PRINT].sum()),
         "travel_length_mm": float(seg[kind == TRAVEL].sum()),
         "n_moves": len(program),

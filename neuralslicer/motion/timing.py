@@ -92,10 +92,19 @@ def _junctions(length: FloatArray, cos: FloatArray, cruise: FloatArray, accel: F
         cap[:-1] = np.where(both, np.minimum(cruise[:-1], cruise[1:]) * 0.5 * (1.0 + cos), 0.0)
     reach = np.where(moving, 2.0 * accel * length ** 2, 0.0)      # v_end^2 - v_start^2 a move can make
     p = np.cumsum(reach)
-    del reach
-    sq = np.minimum.accumulate((cap ** 2 + p)[::-1])[::-1] - p    # backward: J_k^2 <= J_{k+1}^2 + reach_{k+1}
-    sq = p + np.minimum(np.minimum.accumulate(sq - p), 0.0)      # forward: J_k^2 <= J_{k-1}^2 + reach_k
-    return np.sqrt(np.maximum(sq, 0.0))
+    del reach, moving
+    # in place, a print of millions of moves holds three arrays here, not eight
+    np.square(cap, out=cap)
+    cap += p
+    sq = np.minimum.accumulate(cap[::-1])[::-1]                     # backward: J_k^2 <= J_{k+1}^2 + reach_{k+1}
+    del cap
+    sq -= p
+    sq -= p
+    np.minimum.accumulate(sq, out=sq)                               # forward: J_k^2 <= J_{k-1}^2 + reach_k
+    np.minimum(sq, 0.0, out=sq)
+    sq += p
+    np.maximum(sq, 0.0, out=sq)
+    return np.sqrt(sq, out=sq)
 
 
 def trapezoid_times(rate: FloatArray, accel: FloatArray, start: FloatArray, end: FloatArray) -> FloatArray:
@@ -141,9 +150,9 @@ def schedule(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> tuple[
     rate = np.where(moving, 1.0 / np.where(moving, np.maximum(nominal, top), 1.0), 0.0)
     accel = np.where(moving, acc, 0.0)
     del top, acc
-    cruise_t = np.where(moving, 1.0 / np.where(moving, rate, 1.0), nominal)
     junction = _junctions(length, cos, rate * length, accel)
     del cos
+    cruise_t = np.where(moving, 1.0 / np.where(moving, rate, 1.0), nominal)
     times = nominal
     for a in range(0, n, _ROWS):                  # the moves' trapezoids from their entry to exit speeds
         z = min(a + _ROWS, n)
