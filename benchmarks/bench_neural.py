@@ -10,7 +10,9 @@ optimisation step and peak memory for the default and `paper` networks, and the 
                                                        # spin setting (what a busy shared node does to a run)
     python benchmarks/bench_neural.py all
 
-Prints a table per part and merges the figures into benchmarks/results/bench_neural.json.
+Prints a table per part and merges the figures into benchmarks/results/bench_neural.json. The process is set up as
+the command sets itself up (a short OpenMP spin, ``GOMP_SPINCOUNT``; the allocator), except where ``loaded`` sets
+the OpenMP wait itself.
 """
 from __future__ import annotations
 
@@ -25,9 +27,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import scipy.linalg as sla
-import torch
+from neuralslicer.allocator import keep_freed_memory
+from neuralslicer.neural.device import limit_threads
+
+limit_threads()  # as the command: a short OpenMP spin (GOMP_SPINCOUNT), set before torch is imported
+keep_freed_memory()  # as the command: large arrays from the heap, freed memory kept (neuralslicer/allocator.py)
+
+import numpy as np  # noqa: E402
+import scipy.linalg as sla  # noqa: E402
+import torch  # noqa: E402
 
 from neuralslicer.neural import NeuralConfig, optimise_field
 from neuralslicer.neural.config import DeformationConfig
@@ -166,9 +174,14 @@ def _step_case(size: str, network: str, steps: int, device: str) -> dict:
 
 def _step_proc(size: str, steps: int, network: str = "default", device: str = "cpu",
                env: dict[str, str] | None = None) -> subprocess.Popen:
-    """A `_step` measurement in a subprocess (its own peak memory), with the given environment additions."""
+    """A `_step` measurement in a subprocess (its own peak memory), with the given environment additions (an OpenMP
+    wait setting among them replaces the command's, which this process passes on otherwise)."""
+    base = dict(os.environ)
+    if env and {"GOMP_SPINCOUNT", "OMP_WAIT_POLICY"} & env.keys():
+        base.pop("GOMP_SPINCOUNT", None)
+        base.pop("OMP_WAIT_POLICY", None)
     return subprocess.Popen([sys.executable, __file__, "_step", size, network, str(steps), device],
-                            stdout=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
+                            stdout=subprocess.PIPE, text=True, env={**base, **(env or {})})
 
 
 def _step_result(proc: subprocess.Popen) -> dict:
