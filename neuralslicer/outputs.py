@@ -19,6 +19,7 @@ import numpy as np
 import pyvista as pv
 import trimesh
 
+from neuralslicer.allocator import release_freed_memory
 from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.verify import PART_FIGURES, strain_gains
@@ -393,6 +394,20 @@ def strength_table(figures: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def released(job: Job) -> Job:
+    """The job, then the memory it freed handed back to the kernel (``release_freed_memory``): the export's jobs each
+    make their arrays once, so the freed memory the command keeps for reuse would only add to the next job's peak."""
+
+    def run() -> dict[str, str]:
+        """Do the job, then release."""
+        try:
+            return job()
+        finally:
+            release_freed_memory()
+
+    return run
+
+
 class ExportJobs:
     """Independent jobs of the export (the report's figures, the toolpaths' CSV and VTP files), shared with a forked
     helper process (:class:`neuralslicer.forked.SharedJobs`, the longest first): it starts on them at once, this
@@ -401,7 +416,7 @@ class ExportJobs:
 
     def __init__(self, jobs: list[tuple[float, Job]]) -> None:
         """Start the helper (where one can run) on ``jobs`` ((cost, job), in the report's order)."""
-        self.shared = SharedJobs([job for _, job in jobs], [cost for cost, _ in jobs])
+        self.shared = SharedJobs([released(job) for _, job in jobs], [cost for cost, _ in jobs])
 
     def finish(self) -> dict[str, str]:
         """Do the jobs left here and wait for the helper's: the figures' {caption: path relative to the output
@@ -431,6 +446,7 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     write_layers(d / "layers", run.layers.meshes)
     write_print_outputs(d, run.toolpaths, run.program, run.print_metrics, robot=robot, png=False, gcode=run.gcode,
                         csv=False, vtp=False)
+    release_freed_memory()
     metrics = run_metrics(run, alpha_deg, beta_deg)
     figures = jobs.finish()
     sections = {}
