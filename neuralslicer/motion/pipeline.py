@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
+from neuralslicer.allocator import release_freed_memory
 from neuralslicer.errors import InputError, PlanError
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.grid import values_above
@@ -71,6 +72,7 @@ def plan_toolpaths(layers: Sequence[trimesh.Trimesh], *, platform_z: float, tool
     tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max,
                    stress=stress)
     np.clip(tp.width, w_lo, w_hi, out=tp.width)
+    release_freed_memory()   # the layers' many small arrays, freed: room for the whole print's copies below
     tp, beads = hold_beads(tp, profile.nozzle.bead_thickness_mm) if cfg.thin_beads == "carry" else (tp, None)
     tp, n_merged = merge_short_moves(tp, profile)
     tp.attrs.update(held_beads=beads, n_merged_short_moves=n_merged, toolpaths_s=time.perf_counter() - t0)
@@ -102,6 +104,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material)
     lifted = _merged_lifts(lifted, again)
     del material   # the beads' grid (~100 bytes a waypoint): the program and its timing need the room
+    release_freed_memory()
     t3 = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])

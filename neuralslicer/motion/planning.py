@@ -340,6 +340,7 @@ def merge_short_moves(tp: Toolpaths, profile: MachineProfile) -> tuple[Toolpaths
             prev_of[i] = j
     if keep.all():
         return tp, 0
+    del speed, turn, seg, same, inner, short, cand, prev_of   # the copy below is the step's peak: room for it
     sub = {k: getattr(tp, k)[keep] for k in ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")}
     return replace(tp, **sub, attrs=dict(tp.attrs)), int((~keep).sum())
 

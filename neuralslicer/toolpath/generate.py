@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from neuralslicer.allocator import release_freed_memory
 from neuralslicer.errors import InputError
 from neuralslicer.forked import shared_map
 from neuralslicer.stress_field import StressLike
@@ -422,6 +423,7 @@ class _Columns:
         for k in COLUMNS:
             c[k] = np.concatenate(self.cols[k])
             self.cols[k] = []
+            release_freed_memory()   # the pieces' pages go back to the kernel, not into the next column's peak
         norm = np.linalg.norm(c["axis"], axis=1)
         c["axis"] /= np.where(norm > 0, norm, 1.0)[:, None]
         return Toolpaths(layer=c["layer"], path=c["path"], xyz=c["xyz"], axis=c["axis"],
