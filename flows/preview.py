@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.errors import InputError
+from neuralslicer.motion.planning import ProgramMoves
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS, PREVIEW_FILE
 from neuralslicer.preview.data import PreviewData
 from neuralslicer.preview.page import write_preview
@@ -42,7 +43,7 @@ def preview_run(run_dir: str | Path, out: str | Path | None = None, max_points: 
     and collisions; the file and the moves it draws."""
     run_dir = Path(run_dir)
     ref = motion_ref(run_dir)
-    tp, program, metrics = read_motion(ref)
+    tp, program, metrics = read_motion(ref, ProgramMoves)
     path = Path(out) if out is not None else run_dir / PREVIEW_FILE
     data = write_preview(path, program, tp.width, read_collided(ref), ref.model, metrics, max_points, draw_budget)
     return path, data

@@ -31,7 +31,7 @@ from neuralslicer.gcode.writers import write_gcode
 from neuralslicer.layers import Layers
 from neuralslicer.metrics import (heldout_surface_samples, layer_lpd_at, overhang_area_fraction, strength_angles,
                                   strength_satisfaction, support_angles)
-from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.preview import PREVIEW_FILE
 from neuralslicer.preview.data import PreviewData
 from neuralslicer.preview.page import write_preview
@@ -90,7 +90,8 @@ class RunResults:
     field_history: dict[str, np.ndarray]
     layers: Layers
     toolpaths: Toolpaths
-    program: MachineProgram
+    #: the machine program (ProgramMoves where ``gcode`` holds its G-code: what the preview draws)
+    program: ProgramMoves
     print_metrics: dict
     collision_maps: dict[str, tuple[np.ndarray, np.ndarray]]
     wall_s: dict[str, float]
@@ -512,7 +513,7 @@ def _quiet(_: Any) -> dict[str, str]:
     return {}
 
 
-def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProgram, metrics: dict | None = None,
+def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: ProgramMoves, metrics: dict | None = None,
                         *, robot: bool = False, vtp: bool = True, png: bool = True,
                         gcode: bytes | Iterable[bytes] | None = None,
                         csv: bool = True) -> dict[str, Path]:
@@ -521,6 +522,8 @@ def write_print_outputs(out_dir: str | Path, tp: Toolpaths, program: MachineProg
     ``print_metrics.json`` under ``out_dir``."""
     out = Path(out_dir)
     files = {"waypoints_csv": write_waypoints_csv(out / "toolpaths" / "waypoints.csv", tp)} if csv else {}
+    if gcode is None and not isinstance(program, MachineProgram):
+        raise TypeError("write_print_outputs: the G-code or the whole MachineProgram is needed to write print.gcode")
     files["gcode"] = write_gcode(out / "print.gcode", program if gcode is None else gcode)
     if vtp:
         files["vtp"] = write_toolpaths_vtp(out / "toolpaths.vtp", tp)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -16,11 +16,13 @@ from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Solid
 from neuralslicer.motion.collision import CollisionReport, part_collisions
-from neuralslicer.motion.planning import MachineProgram
+from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
+
+P = TypeVar("P", bound=ProgramMoves)
 
 if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
     import trimesh
@@ -102,8 +104,7 @@ def encode_motion(tp: Toolpaths, program: MachineProgram, metrics: dict, collisi
 def read_machine_program(ref: ArtifactRef) -> MachineProgram:
     """The machine program of a stored print alone (not its toolpaths or collisions)."""
     store = ArtifactStore(ref.store, create=False)
-    names = [k for k in store.array_names(ref.path) if k.startswith("program/")]
-    arrays, attrs = store.read(ref.path, names)
+    arrays, attrs = store.read(ref.path, [f"program/{k}" for k in MachineProgram.ARRAYS])
     return MachineProgram.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()}, attrs["program"])
 
 
@@ -136,13 +137,17 @@ def read_program(ref: ArtifactRef) -> StoredBytes:
     return StoredBytes(ref, "gcode")
 
 
-def read_motion(ref: ArtifactRef) -> tuple[Toolpaths, MachineProgram, dict]:
-    """Toolpaths, machine program and print metrics (the inverse of encode_motion)."""
-    arrays, attrs = read(ref)
+def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram) -> tuple[Toolpaths, P, dict]:
+    """Toolpaths, machine program and print metrics (the inverse of encode_motion); ``program``: ProgramMoves to
+    read only the program's arrays that drawing it needs."""
+    store = ArtifactStore(ref.store, create=False)
+    names = [k for k in store.array_names(ref.path)
+             if k.startswith("toolpaths/") or k.startswith("program/") and k.split("/", 1)[1] in program.ARRAYS]
+    arrays, attrs = store.read(ref.path, names)
     part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
     return (
         Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]),
-        MachineProgram.from_arrays(part["program"], attrs["program"]),
+        program.from_arrays(part["program"], attrs["program"]),
         attrs["metrics"],
     )
 
@@ -229,7 +234,8 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
             "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress, "verify": verify}
     c = read_cage(cage)
     surface_mesh, surface_attrs = read_surface(surface)
-    tp, program, print_metrics = read_motion(motion)
+    # the G-code comes from the store: of the program, the export reads what it draws
+    tp, program, print_metrics = read_motion(motion, ProgramMoves if program_ref is not None else MachineProgram)
     gcode = read_program(program_ref) if program_ref is not None else None
     maps = {"printed": read_collision_map(motion)}
     if attempts and attempts[0][2] != motion:

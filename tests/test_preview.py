@@ -46,6 +46,20 @@ def test_moves_are_back_plotted_through_the_profile(curved) -> None:
     assert np.allclose(attrs.length_mm[1:], np.linalg.norm(np.diff(attrs.tip, axis=0), axis=1))
 
 
+def test_the_moves_read_back_draw_what_the_whole_program_draws(curved) -> None:
+    """ProgramMoves (the arrays the export reads of a stored program) give the preview the same moves and values."""
+    from neuralslicer.motion.planning import MachineProgram, ProgramMoves
+
+    tp, prog, _, _ = curved
+    arrays, attrs = prog.to_arrays()
+    moves = ProgramMoves.from_arrays(arrays, attrs)
+    assert not isinstance(moves, MachineProgram) and len(moves) == len(prog) and moves.attrs == prog.attrs
+    assert set(ProgramMoves.ARRAYS) < set(MachineProgram.ARRAYS)
+    whole, drawn = preview_data(prog, tp.width, np.array([5])), preview_data(moves, tp.width, np.array([5]))
+    for name in ("move", "tip", "axis", "tilt_deg", "feed_mm_s", "width_mm", "level", "collisions"):
+        assert np.array_equal(getattr(whole, name), getattr(drawn, name)), name
+
+
 def test_inserted_moves_take_the_next_waypoints_value() -> None:
     """A move inserted before a waypoint (rotary split, prime, approach) belongs to that waypoint; the last ones to the
     last waypoint."""

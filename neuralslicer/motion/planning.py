@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import ClassVar, Self
 
 import numpy as np
 
@@ -16,31 +17,22 @@ from neuralslicer.types import FloatArray, IndexArray
 PROGRAM_SCHEMA_VERSION = 1
 #: move kinds
 TRAVEL, PRINT, RETRACT = 0, 1, 2
-_ARRAYS = ("machine", "extruder", "time_s", "kind", "source", "layer", "part_xyz", "part_axis")
 
 
 @dataclass
-class MachineProgram:
-    """Moves of a printer, in execution order.
+class ProgramMoves:
+    """The moves of a machine program as a preview draws them (in 65 of a :class:`MachineProgram`'s 121 bytes a
+    move): its ``machine``, ``time_s``, ``kind``, ``source`` and ``layer`` arrays, part offset, profile and attributes.
+    The export reads a stored program back as these."""
 
-    machine : (n, 5) float64 X, Y, Z (mm), T, R (deg: the tilt and the rotary axis of the profile's layout, R
-    unwrapped; both 0 on a three-axis printer) at the end of each move;
-    extruder : (n,) absolute filament position (mm) at the end of each move;
-    time_s : (n,) planned duration of each move; kind : (n,) int8 TRAVEL/PRINT/RETRACT (RETRACT:
-    extruder-only moves, retraction < 0 or prime > 0); source : (n,) int64 toolpath waypoint index
-    reached by the move, -1 for inserted moves (rotary splitting, retract/prime, approach);
-    layer : (n,) int64; part_xyz / part_axis : (n, 3) the tool tip and tool axis in the build frame
-    the move is meant to reach (forward kinematics of ``machine`` reproduces them).
-    """
+    #: the arrays of its kind (in the store: the program group's arrays of these names)
+    ARRAYS: ClassVar[tuple[str, ...]] = ("machine", "time_s", "kind", "source", "layer")
 
     machine: FloatArray
-    extruder: FloatArray
     time_s: FloatArray
     kind: np.ndarray
     source: IndexArray
     layer: IndexArray
-    part_xyz: FloatArray
-    part_axis: FloatArray
     part_offset: FloatArray
     profile: MachineProfile
     attrs: dict = field(default_factory=dict)
@@ -49,23 +41,15 @@ class MachineProgram:
         """Number of moves."""
         return int(len(self.machine))
 
-    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
-        """Store-able form: (arrays, JSON attrs incl. the profile) for one zarr group."""
-        arrays = {k: np.ascontiguousarray(getattr(self, k)) for k in _ARRAYS}
-        attrs = {"schema_version": PROGRAM_SCHEMA_VERSION, "units": "mm, deg, s",
-                 "axes": list(self.axis_letters), "part_offset": [float(v) for v in self.part_offset],
-                 "profile": self.profile.model_dump(mode="json"), **self.attrs}
-        return arrays, attrs
-
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> "MachineProgram":
-        """Inverse of ``to_arrays``."""
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Self:
+        """Inverse of ``MachineProgram.to_arrays`` (``arrays``: at least those of ``ARRAYS``)."""
         attrs = dict(attrs)
         profile = MachineProfile.model_validate(attrs.pop("profile"))
         offset = np.asarray(attrs.pop("part_offset"), np.float64)
         for k in ("schema_version", "units", "axes"):
             attrs.pop(k, None)
-        kw = {k: np.asarray(arrays[k]) for k in _ARRAYS}
+        kw = {k: np.asarray(arrays[k]) for k in cls.ARRAYS}
         return cls(**kw, part_offset=offset, profile=profile, attrs=attrs)
 
     @property
@@ -78,6 +62,36 @@ class MachineProgram:
         """Forward kinematics of all moves: tool tip and tool axis in the build frame."""
         return forward_kinematics(self.machine[:, :3], self.machine[:, 3], self.machine[:, 4],
                                   self.profile.kinematics, self.part_offset)
+
+
+@dataclass(kw_only=True)
+class MachineProgram(ProgramMoves):
+    """Moves of a printer, in execution order.
+
+    machine : (n, 5) float64 X, Y, Z (mm), T, R (deg: the tilt and the rotary axis of the profile's layout, R
+    unwrapped; both 0 on a three-axis printer) at the end of each move;
+    extruder : (n,) absolute filament position (mm) at the end of each move;
+    time_s : (n,) planned duration of each move; kind : (n,) int8 TRAVEL/PRINT/RETRACT (RETRACT:
+    extruder-only moves, retraction < 0 or prime > 0); source : (n,) int64 toolpath waypoint index
+    reached by the move, -1 for inserted moves (rotary splitting, retract/prime, approach);
+    layer : (n,) int64; part_xyz / part_axis : (n, 3) the tool tip and tool axis in the build frame
+    the move is meant to reach (forward kinematics of ``machine`` reproduces them).
+    """
+
+    ARRAYS: ClassVar[tuple[str, ...]] = ("machine", "extruder", "time_s", "kind", "source", "layer", "part_xyz",
+                                         "part_axis")
+
+    extruder: FloatArray
+    part_xyz: FloatArray
+    part_axis: FloatArray
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Store-able form: (arrays, JSON attrs incl. the profile) for one zarr group."""
+        arrays = {k: np.ascontiguousarray(getattr(self, k)) for k in self.ARRAYS}
+        attrs = {"schema_version": PROGRAM_SCHEMA_VERSION, "units": "mm, deg, s",
+                 "axes": list(self.axis_letters), "part_offset": [float(v) for v in self.part_offset],
+                 "profile": self.profile.model_dump(mode="json"), **self.attrs}
+        return arrays, attrs
 
     def program_xyz(self, start: int = 0, stop: int | None = None) -> FloatArray:
         """The XYZ the G-code carries for moves start..stop-1: machine coordinates, or with ``kinematics.tcp`` the

@@ -1,7 +1,7 @@
 """What the preview shows of a machine program: its moves back-plotted in the part frame, their colours, decimated.
 
 The tool tip and tool axis of every move come from the program's machine coordinates through the profile's forward
-kinematics (``MachineProgram.forward``), so the page shows what the machine will do, not what the planner meant.
+kinematics (``ProgramMoves.forward``), so the page shows what the machine will do, not what the planner meant.
 Retract and prime moves (the extruder alone) are left out. The rest is simplified as a polyline in the manner of
 Douglas and Peucker: the first and last move of every run of one kind on one layer and the colliding moves are kept;
 then, round by round, every stretch between kept moves farther than ``FLOOR_MM`` from its chord is split at its
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neuralslicer.motion.planning import RETRACT, MachineProgram
+from neuralslicer.motion.planning import RETRACT, ProgramMoves
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
 
@@ -120,7 +120,7 @@ def waypoint_values(source: IndexArray, values: FloatArray) -> FloatArray:
     return np.asarray(values, np.float64)[source[pos[np.minimum(nxt, len(pos) - 1)]]]
 
 
-def move_attributes(program: MachineProgram, widths: FloatArray) -> MoveAttributes:
+def move_attributes(program: ProgramMoves, widths: FloatArray) -> MoveAttributes:
     """Every move's tip and axis by forward kinematics, and its length, bead width and tilt (``widths``: (w,) the
     toolpaths' width per waypoint)."""
     tip, axis = program.forward()
@@ -371,7 +371,7 @@ def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFA
                        draw_budget=draw_budget, n_collided=n_collided)
 
 
-def preview_data(program: MachineProgram, widths: FloatArray, collided_waypoints: IndexArray,
+def preview_data(program: ProgramMoves, widths: FloatArray, collided_waypoints: IndexArray,
                  max_points: int = DEFAULT_MAX_POINTS, draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
     """The decimated moves of a program to draw: ``widths`` (w,) the toolpaths' bead width per waypoint,
     ``collided_waypoints`` the toolpath waypoint indices whose head collides (``CollisionReport.indices``)."""

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from neuralslicer.fileio import atomic_path
-from neuralslicer.motion.planning import PRINT, MachineProgram
+from neuralslicer.motion.planning import PRINT, ProgramMoves
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS
 from neuralslicer.preview.data import PreviewData, preview_data
@@ -123,7 +123,7 @@ def preview_html(data: PreviewData, title: str, nozzle: Nozzle, stats: dict[str,
         f"</script>\n<script>{page_asset('page.js')}</script>\n</body></html>\n")
 
 
-def preview_stats(program: MachineProgram, metrics: dict[str, Any] | None) -> dict[str, Any]:
+def preview_stats(program: ProgramMoves, metrics: dict[str, Any] | None) -> dict[str, Any]:
     """The figures in the page's header: the program's layers and the print metrics of :data:`PREVIEW_STATS` (the
     finite numbers among them)."""
     n_layers = int(program.layer.max()) + 1 if len(program) else 0
@@ -132,7 +132,7 @@ def preview_stats(program: MachineProgram, metrics: dict[str, Any] | None) -> di
                                      if isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)}}
 
 
-def write_preview(path: str | Path, program: MachineProgram, widths: FloatArray, collided_waypoints: IndexArray,
+def write_preview(path: str | Path, program: ProgramMoves, widths: FloatArray, collided_waypoints: IndexArray,
                   model: str, metrics: dict[str, Any] | None = None, max_points: int = DEFAULT_MAX_POINTS,
                   draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
     """Write ``preview.html`` of a program atomically; the decimated moves it draws.
