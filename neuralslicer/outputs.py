@@ -440,9 +440,6 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
         (0.5, lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))),
         (1.2, lambda: _quiet(write_run_preview(d / PREVIEW_FILE, run))),
     ]
-    # the helper is forked: the memory freed so far goes back to the kernel first, else the helper's arrays reuse the
-    # freed pages this process still holds, and each page they touch is copied
-    release_freed_memory()
     jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
