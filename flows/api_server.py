@@ -78,7 +78,10 @@ def main(argv: list[str]) -> None:
     import uvicorn
     from prefect.server.api.server import create_app
 
-    app = create_app()
+    # ephemeral: the ephemeral server's services only (no scheduler, late runs, ...) and no UI; final: the last app
+    # this process builds. create_app's documented arguments: what Prefect's own ephemeral server is given through
+    # private settings
+    app = create_app(ephemeral=True, final=True)
     uvicorn.run(idle_watched(app, idle_s) if idle_s > 0 else app, host="127.0.0.1", port=port, log_level="error",
                 lifespan="on")
 

@@ -84,7 +84,8 @@ class LocalApi:
         """Start the process of Prefect's server app (the ephemeral server's app and settings, ``flows/api_server``)."""
         self.port = free_port()
         self.reused = False
-        env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1"}
+        # no UI (a public setting); the ephemeral mode is create_app's own argument (flows/api_server.py)
+        env = {**os.environ, "PREFECT_SERVER_UI_ENABLED": "false"}
         if "prefect" in sys.modules:  # settings made in this process (else the server reads the same environment)
             from prefect.settings import get_current_settings
 

@@ -170,3 +170,11 @@ def test_core_runs_without_prefect(layer: str) -> None:
     assert done.returncode == 0, done.stderr[-2000:]
     imported = done.stdout.split()
     assert len(imported) > (40 if layer == "neuralslicer" else 2) and not any(m.startswith(tuple(skip)) for m in imported)
+
+
+def test_prefect_is_used_through_its_public_settings() -> None:
+    """No source file sets Prefect's private ``PREFECT__...`` settings (they change without notice between releases;
+    the local server gets its ephemeral mode from ``create_app``'s documented arguments)."""
+    private = [f"{path.relative_to(REPO)}:{i}" for path in sources().values()
+               for i, line in enumerate(path.read_text().splitlines(), 1) if "PREFECT__" in line]
+    assert private == []

@@ -39,7 +39,7 @@ def test_provenance_records_inputs_seeds_versions_and_device(tmp_path: Path) -> 
     record = provenance(spec, config)
     assert record["inputs"]["files"][str(model.resolve())] == hashlib.sha256(model.read_bytes()).hexdigest()
     assert record["seeds"] == {"samples.seed": 3, "cage.seed": 0, "neural.optim.seed": 7, "s3_oneshot.seed": 0}
-    assert record["versions"]["torch"] and record["versions"]["prefect"] == "3.8.8"
+    assert record["versions"]["torch"] and record["versions"]["prefect"] == "3.9.1"
     assert record["device"]["torch_device"] in ("cpu", "cuda")
     assert record["config"]["neural"]["optim"]["seed"] == 7
     entries = metrics_entries(record)
