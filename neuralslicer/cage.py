@@ -106,6 +106,7 @@ def _tetrahedralize(surface: trimesh.Trimesh, edge: float, seed: int) -> tuple[n
         edge_length_abs=float(edge),
         epsilon=float(ENVELOPE * edge / diag),
         quiet=True,
+        num_threads=1,   # on its OpenMP threads fTetWild gave another mesh for the same draw 2 calls in 40
     )
     t = t.astype(np.int64)
     t = orient_tets(v, t)
