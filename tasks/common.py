@@ -23,6 +23,7 @@ from neuralslicer.tasks.progress import say
 
 T = TypeVar("T")
 
+
 def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
     """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""
     skip = {"store", *exclude}
