@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from neuralslicer.motion.head import _inside_head, head_lowest_z, platform_clearance  # noqa: F401
+from neuralslicer.motion.kinematics import ROWS_PER_BLOCK
 from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.motion.scan import HeadPart, scan
@@ -66,8 +67,6 @@ class CollisionReport:
 _REACH_TOL = 1e-6
 #: every this many-th pose left after the cone's test is an anchor of the holder test
 HOLDER_ANCHOR_EVERY = 8
-#: poses compared with their anchors at a time (bounds the temporaries of a print of millions of waypoints)
-HOLDER_BLOCK = 1 << 18
 #: how far (mm) beyond the holder an anchor's scan looks for material (the most clearance it can certify)
 HOLDER_MARGIN = 5.0
 
@@ -132,13 +131,13 @@ def _holder_hits(material: PrintedMaterial, part: HeadPart, nozzle: Nozzle, tips
         reach = float(np.hypot(nozzle.cone_length + nozzle.holder_length, nozzle.holder_radius))
         cleared = np.zeros(len(todo), bool)
         cleared[rank[::HOLDER_ANCHOR_EVERY]] = clear > _REACH_TOL
-        for lo in range(0, len(todo), HOLDER_BLOCK):       # in blocks: the (n, 3) differences of a long print
-            r, j = rank[lo:lo + HOLDER_BLOCK], todo[lo:lo + HOLDER_BLOCK]
+        for lo in range(0, len(todo), ROWS_PER_BLOCK):       # in blocks: the (n, 3) differences of a long print
+            r, j = rank[lo:lo + ROWS_PER_BLOCK], todo[lo:lo + ROWS_PER_BLOCK]
             for k in (r // HOLDER_ANCHOR_EVERY, np.minimum(r // HOLDER_ANCHOR_EVERY + 1, len(anchors) - 1)):
                 a = anchors[k]
                 delta = np.linalg.norm(tips[j] - tips[a], axis=1)
                 gamma = np.arccos(np.clip(np.einsum("ij,ij->i", axes[j], axes[a]), -1.0, 1.0))
-                cleared[lo:lo + HOLDER_BLOCK] |= clear[k] > delta + gamma * reach + _REACH_TOL
+                cleared[lo:lo + ROWS_PER_BLOCK] |= clear[k] > delta + gamma * reach + _REACH_TOL
         todo = todo[~cleared]
     h, w, _ = scan(material, part, tips[todo], axes[todo], visible[todo])
     hit[todo[h]] = True
