@@ -435,10 +435,11 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     helper process (:class:`ExportJobs`) while this one writes the rest."""
     d = Path(out_dir)
     run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
+    # the preview and the VTP are the jobs that make per-move arrays: one job, so that they never run at once
     files: list[tuple[float, Job]] = [
         (1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths))),
-        (0.5, lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))),
-        (1.2, lambda: _quiet(write_run_preview(d / PREVIEW_FILE, run))),
+        (1.7, lambda: _quiet((write_run_preview(d / PREVIEW_FILE, run),
+                              release_freed_memory(), write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths)))),
     ]
     jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
     write_ply(d / "model.ply", run.surface)

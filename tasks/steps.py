@@ -170,7 +170,8 @@ def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: Art
 
     solid = read_solid(model)
     tp, program, metrics, collisions = plan_motion_of(read_toolpaths(toolpaths), platform_z=solid.platform_z,
-                                                      solid_H=solid.H, toolpath_cfg=config, profile=machine)
+                                                      solid_H=solid.H, toolpath_cfg=config, profile=machine,
+                                                      consume=True)
     get_run_logger().info("motion: %d waypoints, %d collisions", metrics["n_waypoints"], metrics["n_collisions"])
     return encode_motion(tp, program, metrics, collisions)
 

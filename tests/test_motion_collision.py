@@ -288,3 +288,27 @@ def test_holder_anchors_clear_nearby_poses_soundly(monkeypatch):
     assert free.sum() > 100 and np.all(bound[free] <= true[free] + 1e-9) and np.all(bound[free] <= 5.0)
     assert np.all(np.isneginf(bound[inside]))
     assert np.mean(bound[free] > 0.5 * np.minimum(true[free], 5.0)) > 0.5   # and a useful one
+
+
+def test_the_check_in_blocks_is_the_check_of_the_whole(monkeypatch):
+    """The waypoints checked a block at a time (a long print's temporaries are a block's) give the report of the
+    whole print checked at once: every index, kind and witness, with and without ``only``."""
+    import dataclasses
+
+    from neuralslicer.motion import collision
+    from neuralslicer.motion.pipeline import plan_toolpaths
+
+    tp = plan_toolpaths(cap_stack(6, thickness=0.6, r0=6.0, theta_max_deg=75.0, subdivisions=3), platform_z=-12.0)
+    tilt = np.radians(50.0)       # one tilted tool axis everywhere: the head reaches back into the caps and below
+    tp = dataclasses.replace(tp, axis=np.tile([0.0, np.sin(tilt), np.cos(tilt)], (len(tp), 1)))
+    platform_z = float(tp.xyz[:, 2].min()) - 4.0
+    only = np.random.default_rng(3).choice(len(tp), 700, replace=False)
+    whole, some = check_collisions(tp, NOZZLE, platform_z), check_collisions(tp, NOZZLE, platform_z, only=only)
+    summary = whole.summary()
+    assert summary["n_part_collisions"] > 100 and summary["n_platform_collisions"] > 100
+    assert summary["n_travel_collisions"] >= 1 and some.count > 10
+    monkeypatch.setattr(collision, "CHECK_BLOCK", 97)
+    for a, b in ((whole, check_collisions(tp, NOZZLE, platform_z)),
+                 (some, check_collisions(tp, NOZZLE, platform_z, only=only))):
+        assert np.array_equal(a.indices, b.indices) and np.array_equal(a.kind, b.kind)
+        assert np.array_equal(a.locations, b.locations)

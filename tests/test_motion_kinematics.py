@@ -147,7 +147,9 @@ def test_split_rotary_moves_end_exactly_on_their_waypoints():
           "c": np.cumsum(rng.uniform(-9, 9, m)), "de": rng.uniform(0, 1, m), "dt": rng.uniform(0, 1, m),
           "extrude": rng.uniform(size=m) < 0.7, "layer": np.arange(m) // 10, "source": np.arange(-1, m - 1)}
     mv["drot"] = np.r_[0.0, np.maximum(np.abs(np.diff(mv["b"])), np.abs(np.diff(mv["c"])))]
-    out = _split_rotary(mv, 2.0)
+    given = dict(mv)
+    out = _split_rotary(given, 2.0)
+    assert not given                                  # the moves' arrays are handed over (freed as they are split)
     assert len(out["xyz"]) > m
     on = out["source"] >= 0
     assert np.array_equal(out["xyz"][on], mv["xyz"][out["source"][on] + 1])
@@ -155,5 +157,5 @@ def test_split_rotary_moves_end_exactly_on_their_waypoints():
     assert np.abs(np.diff(out["c"])).max() <= 2.0 + 1e-9 and np.abs(np.diff(out["b"])).max() <= 2.0 + 1e-9
     assert np.isclose(out["de"].sum(), mv["de"].sum()) and np.isclose(out["dt"].sum(), mv["dt"].sum())
     # nothing to split: the same arrays, not copies
-    still = _split_rotary(mv, 100.0)
+    still = _split_rotary(dict(mv), 100.0)
     assert still["xyz"] is mv["xyz"] and still["c"] is mv["c"] and np.array_equal(still["source"], mv["source"])

@@ -170,3 +170,41 @@ def test_plan_print_builds_one_structure(monkeypatch):
     assert len(built) == 1
     assert metrics["axis_tilt"]["n_collisions_before"] > 0 or metrics["travel_lift"]["n_travels_lifted"] > 0
     assert report.count == check_collisions(tp, pipeline.load_profile("table_bc_linuxcnc").nozzle, -12.0).count
+
+
+def test_the_print_structure_is_that_of_its_beads_tops_and_bottoms():
+    """``of_toolpaths`` (built without the beads' (2n, 3) point arrays) is ``of_points`` of every printing waypoint's
+    top and bottom laid at its rank, array for array; travel waypoints lay nothing."""
+    layers = cap_stack(4, thickness=0.6, r0=6.0, theta_max_deg=70.0, subdivisions=3)
+    tp = toolpaths(layers, platform_z=-8.0)
+    tp.path[::37] = -1                                  # some waypoints that are not on a layer
+    on = tp.path >= 0
+    top = tp.xyz[on]
+    bottom = top - tp.thickness[on, None] * tp.axis[on]
+    rank = np.arange(int(on.sum()))
+    for cell in (0.7, 1.5):
+        lean = PrintedMaterial.of_toolpaths(tp, cell=cell)
+        ref = PrintedMaterial.of_points(np.concatenate([top, bottom]), np.concatenate([rank, rank]), len(rank), cell)
+        for name in ("columns", "time", "origin", "start", "top"):
+            assert np.array_equal(getattr(lean, name), getattr(ref, name)), name
+            assert getattr(lean, name).dtype == getattr(ref, name).dtype
+        assert (lean.cell, lean.stride, lean.n_ranks) == (ref.cell, ref.stride, ref.n_ranks)
+        assert all(np.array_equal(a, b) for a, b in zip(lean.dims, ref.dims))
+        assert all(np.array_equal(a, b) for a, b in zip(lean.first, ref.first))
+
+
+def test_the_motion_step_can_take_over_the_toolpaths():
+    """``consume=True`` (the pipeline's motion step) leaves the caller's toolpaths empty, so they are not held beside
+    the program, and plans what the caller's copy plans."""
+    import dataclasses
+
+    from neuralslicer.motion.pipeline import plan_motion_of, plan_toolpaths
+
+    tp = plan_toolpaths(cap_stack(4, thickness=0.6, r0=6.0, theta_max_deg=60.0, subdivisions=3), platform_z=-8.0)
+    given = dataclasses.replace(tp, **{k: getattr(tp, k).copy() for k in ("layer", "path", "xyz", "axis", "thickness",
+                                                                          "width", "extrude")}, attrs=dict(tp.attrs))
+    taken = plan_motion_of(given, platform_z=-8.0, consume=True)
+    kept = plan_motion_of(tp, platform_z=-8.0)
+    assert len(given) == 0 and len(tp) > 1000
+    assert np.array_equal(taken[0].xyz, kept[0].xyz) and np.array_equal(taken[1].machine, kept[1].machine)
+    assert {k: v for k, v in taken[2].items() if k != "timings_s"} == {k: v for k, v in kept[2].items() if k != "timings_s"}

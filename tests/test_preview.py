@@ -13,8 +13,8 @@ import pytest
 from neuralslicer.motion import load_profile, plan_print
 from neuralslicer.motion.planning import PRINT, RETRACT, TRAVEL
 from neuralslicer.preview import PREVIEW_FILE
-from neuralslicer.preview.data import (FLOOR_MM, MoveAttributes, decimate, deviations, move_attributes, preview_data,
-                                       waypoint_values)
+from neuralslicer.preview.data import (FLOOR_MM, MoveAttributes, colliding_moves, decimate, deviations, move_attributes,
+                                       preview_data, waypoint_values)
 from neuralslicer.preview.page import PREVIEW_SCHEMA, plotly_js, preview_html, write_preview
 from neuralslicer.toolpath.synthetic import cap_stack
 
@@ -44,6 +44,21 @@ def test_moves_are_back_plotted_through_the_profile(curved) -> None:
     assert attrs.tilt_deg.max() > 10.0                       # the caps tilt the tool
     assert np.array_equal(attrs.width_mm[w], tp.width[src[w]])
     assert np.allclose(attrs.length_mm[1:], np.linalg.norm(np.diff(attrs.tip, axis=0), axis=1))
+
+
+def test_the_preview_turns_axes_only_for_the_moves_it_keeps(curved) -> None:
+    """The preview computes the tool axes and tilts at the moves it keeps only, and its tips and lengths in chunks:
+    the same moves and values as from every move's attributes."""
+    tp, prog, _, report = curved
+    lean = move_attributes(prog, tp.width, axes=False)
+    assert lean.axis is None and lean.tilt_deg is None
+    full = move_attributes(prog, tp.width)
+    assert np.array_equal(lean.tip, full.tip) and np.array_equal(lean.length_mm, full.length_mm)
+    a = preview_data(prog, tp.width, report.indices, max_points=500)
+    b = decimate(full, colliding_moves(prog.source, report.indices), max_points=500)
+    assert 0 < len(a) < len(prog)
+    for name in ("move", "tip", "axis", "tilt_deg", "layer", "kind", "feed_mm_s", "width_mm", "level"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
 def test_the_moves_read_back_draw_what_the_whole_program_draws(curved) -> None:

@@ -218,3 +218,26 @@ def test_schedule_in_blocks_equals_one_block(monkeypatch):
     summary = program_time(type("P", (), {"machine": machine, "time_s": planned,
                                           "profile": load_profile("table_bc_linuxcnc").model_copy(update={"feeds": feeds})})())
     assert summary["estimated_print_time_s"] == pytest.approx(float(whole[0].sum()))
+
+
+def test_the_schedule_in_blocks_is_the_schedule_of_the_whole(monkeypatch):
+    """Blocks that end where the machine stands still give the whole program's junction speeds and times, bit for
+    bit (a long print holds a block's temporaries)."""
+    from neuralslicer.motion import timing
+
+    rng = np.random.default_rng(5)
+    feeds = load_profile("table_bc_linuxcnc").feeds
+    n = 20_000
+    machine = np.cumsum(rng.normal(scale=0.4, size=(n, 5)), axis=0)
+    still = np.flatnonzero(rng.random(n) < 0.003)
+    still = still[still > 0]
+    machine[still] = machine[still - 1]                  # extruder-only moves: the machine at rest
+    planned = rng.uniform(0.0, 0.05, n) * (rng.random(n) > 0.02)
+    whole = timing.schedule(machine, planned, feeds)
+    monkeypatch.setattr(timing, "_ROWS", 500)
+    blocks = timing._blocks_at_rest(np.linalg.norm(np.diff(machine, axis=0, prepend=machine[:1]), axis=1) > 0, 500)
+    assert len(blocks) > 10 and blocks[0][0] == 0 and blocks[-1][1] == n
+    assert all(z == a for (_, z), (a, _) in zip(blocks, blocks[1:]))
+    parts = timing.schedule(machine, planned, feeds)
+    assert np.array_equal(whole[0], parts[0]) and np.array_equal(whole[1], parts[1])
+    assert whole[0].sum() > planned.sum()                # acceleration costs time

@@ -69,6 +69,8 @@ _REACH_TOL = 1e-6
 HOLDER_ANCHOR_EVERY = 8
 #: how far (mm) beyond the holder an anchor's scan looks for material (the most clearance it can certify)
 HOLDER_MARGIN = 5.0
+#: waypoints checked at a time (the check's temporaries, some 300 bytes a waypoint, are a block's)
+CHECK_BLOCK = 1 << 18
 
 
 
@@ -187,6 +189,7 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
     largest line width, at least 0.3 mm), so the beads touching the nozzle are not counted;
     only : check just these waypoints (and the moves arriving at them; the material is still all of it);
     material : the print's material (``PrintedMaterial.of_toolpaths``), when the caller has it already.
+    The waypoints are checked ``CHECK_BLOCK`` at a time (every pose's answer is its own: the same report).
     """
     n = len(tp)
     if n == 0:
@@ -194,32 +197,63 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
     if min_height is None:
         min_height = default_min_height(tp)
     material = PrintedMaterial.of_toolpaths(tp) if material is None else material
-    visible = material.visible_at(tp)
-    if only is None:
-        wanted = np.ones(n, bool)
-    else:
-        wanted = np.zeros(n, bool)
-        wanted[np.asarray(only, np.int64)] = True
-    ask = np.flatnonzero(wanted)
-    hit, loc, kind = np.zeros(n, bool), np.zeros((n, 3)), np.zeros(n, np.int8)
+    printing = tp.path >= 0
+    if int(printing.sum()) != material.n_ranks:
+        raise ValueError(f"the material holds {material.n_ranks} printing waypoints, the toolpaths {int(printing.sum())}")
+    asked = None if only is None else np.unique(np.asarray(only, np.int64))
+    found, before = [], 0
+    for lo in range(0, n, CHECK_BLOCK):
+        hi = min(lo + CHECK_BLOCK, n)
+        on = printing[lo:hi].astype(np.int64)
+        visible = np.cumsum(on)
+        visible += before - on                       # the printing waypoints before each (material.visible_at)
+        before = int(visible[-1]) + int(on[-1])
+        ask = np.arange(lo, hi) if asked is None else asked[(asked >= lo) & (asked < hi)]
+        if len(ask):
+            found.append(_check_block(tp, lo, hi, ask, visible, nozzle, platform_z, min_height, platform_tolerance,
+                                      travel_spacing, material))
+    if not found:
+        return CollisionReport(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int8))
+    return CollisionReport(np.concatenate([f.indices for f in found]), np.concatenate([f.locations for f in found]),
+                           np.concatenate([f.kind for f in found]))
+
+
+def _check_block(tp: Toolpaths, lo: int, hi: int, ask: IndexArray, visible: IndexArray, nozzle: Nozzle,
+                 platform_z: float, min_height: float, platform_tolerance: float, travel_spacing: float,
+                 material: PrintedMaterial) -> CollisionReport:
+    """``check_collisions`` of the waypoints ``ask`` (sorted, within [lo, hi)) and the moves arriving at them;
+    ``visible`` (hi - lo,): the ranks each waypoint of the block sees."""
+    m = hi - lo
+    hit, loc, kind = np.zeros(m, bool), np.zeros((m, 3)), np.zeros(m, np.int8)
+    local = ask - lo
     # platform (exact), at the waypoints asked about only
     plat = ask[platform_clearance(tp.xyz[ask], tp.axis[ask], nozzle, platform_z) < -platform_tolerance]
-    hit[plat] = True
-    loc[plat] = np.c_[tp.xyz[plat, :2], np.full(len(plat), platform_z)]
-    kind[plat] = PLATFORM
-    # the part: the waypoints, then the poses inside the moves arriving at them
-    s_xyz, s_axis, s_to = travel_samples(tp, travel_spacing)
+    hit[plat - lo] = True
+    loc[plat - lo] = np.c_[tp.xyz[plat, :2], np.full(len(plat), platform_z)]
+    kind[plat - lo] = PLATFORM
+    # the part: the waypoints, then the poses inside the moves arriving at them (from the waypoint before the block)
+    first = max(lo - 1, 0)
+    s_xyz, s_axis, s_to = travel_samples(_waypoints(tp, first, hi), travel_spacing)
+    s_to += first - lo
+    wanted = np.zeros(m, bool)
+    wanted[local] = True
     keep = wanted[s_to]
     s_xyz, s_axis, s_to = s_xyz[keep], s_axis[keep], s_to[keep]
     p_hit, p_loc = head_hits(material, np.concatenate([tp.xyz[ask], s_xyz]), np.concatenate([tp.axis[ask], s_axis]),
-                             visible[np.concatenate([ask, s_to])], nozzle, min_height)
-    new = p_hit[:len(ask)] & ~hit[ask]
-    hit[ask[new]], loc[ask[new]], kind[ask[new]] = True, p_loc[:len(ask)][new], PART
+                             visible[np.concatenate([local, s_to])], nozzle, min_height)
+    new = p_hit[:len(ask)] & ~hit[local]
+    hit[local[new]], loc[local[new]], kind[local[new]] = True, p_loc[:len(ask)][new], PART
     t_hit, t_loc = p_hit[len(ask):], p_loc[len(ask):]
     to, where = s_to[t_hit], t_loc[t_hit]
-    first = np.unique(to, return_index=True)[1]
-    to, where = to[first], where[first]
+    first_hit = np.unique(to, return_index=True)[1]
+    to, where = to[first_hit], where[first_hit]
     new = ~hit[to]
     hit[to[new]], loc[to[new]], kind[to[new]] = True, where[new], TRAVEL_PATH
     idx = np.flatnonzero(hit)
-    return CollisionReport(idx.astype(np.int64), loc[idx], kind[idx])
+    return CollisionReport((idx + lo).astype(np.int64), loc[idx], kind[idx])
+
+
+def _waypoints(tp: Toolpaths, lo: int, hi: int) -> Toolpaths:
+    """The waypoints [lo, hi) of a print as views (no copy)."""
+    return Toolpaths(layer=tp.layer[lo:hi], path=tp.path[lo:hi], xyz=tp.xyz[lo:hi], axis=tp.axis[lo:hi],
+                     thickness=tp.thickness[lo:hi], width=tp.width[lo:hi], extrude=tp.extrude[lo:hi])

@@ -65,38 +65,73 @@ class PrintedMaterial:
         top = _top_by_rank(points, time, n_ranks)
         lo = points.min(axis=0) if len(points) else np.zeros(3)
         hi = points.max(axis=0) if len(points) else np.zeros(3)
-        span = np.maximum(hi - lo, 1e-9)
-        cell = max(cell, float(np.cbrt(np.prod(span + cell) / MAX_CELLS)))
-        origin = lo - 0.5 * cell
-        block = 2 ** N_LEVELS                              # every level's cubes split exactly into the next one's
-        dims0 = -(-(np.floor(span / cell).astype(np.int64) + 2) // block) * block
-        coords = np.floor((points - origin) / cell).astype(np.int64)
-        flat = np.ravel_multi_index(coords.T, dims0) if len(points) else np.zeros(0, np.int64)
+        cell, origin, dims0 = _grid(lo, hi, cell)
+        flat = _cube_keys([points[:, d] for d in range(3)], origin, cell, dims0)
         order = np.argsort(flat, kind="stable")          # time order kept within a cube
-        points, time, flat = points[order], time[order], flat[order]
-        n_cells = int(np.prod(dims0))
-        counts = np.bincount(flat, minlength=n_cells)
+        counts = np.bincount(flat, minlength=int(np.prod(dims0)))
+        columns = np.empty((3, len(points)))
+        for d in range(3):
+            np.take(points[:, d], order, out=columns[d])
+        return cls._indexed(columns, time[order], counts, origin, cell, dims0, top, n_ranks)
+
+    @classmethod
+    def of_toolpaths(cls, tp: Toolpaths, cell: float = CELL_SIZE) -> "PrintedMaterial":
+        """The beads of a print: top and bottom of every printing waypoint (``path >= 0``), laid at its rank.
+
+        The same structure as ``of_points`` of the tops and bottoms, built without the (2n, 3) point arrays and
+        their sorted copies (a tenth of a long print's memory): point ``2 r`` is the top of the ``r``-th printing
+        waypoint, ``2 r + 1`` its bottom, so the ranks are sorted already and one stable sort by cube orders them."""
+        on = np.flatnonzero(tp.path >= 0)
+        m = 2 * len(on)
+        lo, hi, top = np.zeros(3), np.zeros(3), np.full(len(on) + 1, -np.inf)
+        for d in range(3):
+            tops, bottoms = _bead_ends(tp, on, d)
+            if len(on):
+                lo[d], hi[d] = min(tops.min(), bottoms.min()), max(tops.max(), bottoms.max())
+            if d == 2 and len(on):
+                np.maximum(tops, bottoms, out=top[1:])
+                np.maximum.accumulate(top, out=top)
+        cell, origin, dims0 = _grid(lo, hi, cell)
+        flat = np.zeros(m, np.int64)
+        for d in range(3):                                   # the cube keys, coordinate by coordinate
+            tops, bottoms = _bead_ends(tp, on, d)
+            coord = np.empty(m)
+            coord[0::2], coord[1::2] = tops, bottoms
+            del tops, bottoms
+            _add_axis_key(flat, coord, origin[d], cell, dims0, d)
+            del coord
+        order = np.argsort(flat, kind="stable")              # rank order (and top before bottom) kept within a cube
+        counts = np.bincount(flat, minlength=int(np.prod(dims0)))
+        del flat
+        time = order >> 1
+        waypoint = on[time]
+        bottom = np.flatnonzero(order & 1)
+        del order
+        columns = np.empty((3, m))
+        for d in range(3):
+            np.take(tp.xyz[:, d], waypoint, out=columns[d])
+            columns[d][bottom] -= tp.thickness[waypoint[bottom]] * tp.axis[waypoint[bottom], d]
+        del waypoint, bottom
+        return cls._indexed(columns, time, counts, origin, cell, dims0, top, len(on))
+
+    @classmethod
+    def _indexed(cls, columns: FloatArray, time: IndexArray, counts: IndexArray, origin: FloatArray, cell: float,
+                 dims0: np.ndarray, top: FloatArray, n_ranks: int) -> "PrintedMaterial":
+        """The structure of points (``columns``, ``time``) sorted by (cube, time), with their count per finest cube."""
+        n_cells = len(counts)
         start = np.zeros(n_cells + 1, np.int64)
         np.cumsum(counts, out=start[1:])
-        stride = max(len(points), 1)
+        stride = max(columns.shape[1], 1)
         first0 = np.full(n_cells, EMPTY, np.int64)
         occupied = np.flatnonzero(counts)
+        del counts
         first0[occupied] = time[start[occupied]] * stride + start[occupied]
         dims, first = [dims0], [first0]
         for _ in range(N_LEVELS):
             d, f = _pooled(first[-1].reshape(dims[-1]))
             dims.append(d)
             first.append(f)
-        return cls(np.ascontiguousarray(points.T), time, origin, cell, dims, start, first, top, stride, n_ranks)
-
-    @classmethod
-    def of_toolpaths(cls, tp: Toolpaths, cell: float = CELL_SIZE) -> "PrintedMaterial":
-        """The beads of a print: top and bottom of every printing waypoint (``path >= 0``), laid at its rank."""
-        on = tp.path >= 0
-        top = tp.xyz[on]
-        bottom = top - tp.thickness[on, None] * tp.axis[on]
-        rank = np.arange(int(on.sum()), dtype=np.int64)
-        return cls.of_points(np.concatenate([top, bottom]), np.concatenate([rank, rank]), len(rank), cell)
+        return cls(columns, time, origin, cell, dims, start, first, top, stride, n_ranks)
 
     @property
     def points(self) -> FloatArray:
@@ -146,6 +181,37 @@ class PrintedMaterial:
     def top_before(self, visible: IndexArray) -> FloatArray:
         """Highest z (k,) of the material laid before ``visible`` (-inf when none)."""
         return self.top[np.clip(visible, 0, self.n_ranks)]
+
+
+def _bead_ends(tp: Toolpaths, on: IndexArray, d: int) -> tuple[FloatArray, FloatArray]:
+    """Coordinate ``d`` of the tops (the waypoints ``on``) and of the bottoms (``thickness`` below along the axis)."""
+    tops = tp.xyz[on, d]
+    return tops, tops - tp.thickness[on] * tp.axis[on, d]
+
+
+def _grid(lo: FloatArray, hi: FloatArray, cell: float) -> tuple[float, FloatArray, np.ndarray]:
+    """(cube edge, origin, finest dims) of the grid over points within [lo, hi]: at most MAX_CELLS cubes, the dims a
+    multiple of the coarsest level's block."""
+    span = np.maximum(hi - lo, 1e-9)
+    cell = max(cell, float(np.cbrt(np.prod(span + cell) / MAX_CELLS)))
+    origin = lo - 0.5 * cell
+    block = 2 ** N_LEVELS                              # every level's cubes split exactly into the next one's
+    return cell, origin, -(-(np.floor(span / cell).astype(np.int64) + 2) // block) * block
+
+
+def _add_axis_key(flat: IndexArray, coord: FloatArray, origin: float, cell: float, dims0: np.ndarray, d: int) -> None:
+    """Fold coordinate ``d`` of the points into their flat cube keys (row-major over ``dims0``), in place."""
+    if d:
+        flat *= dims0[d]
+    flat += np.floor((coord - origin) / cell).astype(np.int64)
+
+
+def _cube_keys(coords: list[FloatArray], origin: FloatArray, cell: float, dims0: np.ndarray) -> IndexArray:
+    """Flat finest-cube keys (m,) of points given by their coordinate arrays."""
+    flat = np.zeros(len(coords[0]), np.int64)
+    for d in range(3):
+        _add_axis_key(flat, coords[d], origin[d], cell, dims0, d)
+    return flat
 
 
 def _pooled(first: np.ndarray) -> tuple[np.ndarray, IndexArray]:

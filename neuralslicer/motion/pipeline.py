@@ -50,7 +50,8 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     profile = _profile(profile)
     tp = plan_toolpaths(layers, platform_z=platform_z, toolpath_cfg=toolpath_cfg, profile=profile, t_max=t_max,
                         stress=stress)
-    return plan_motion_of(tp, platform_z=platform_z, solid_H=solid_H, toolpath_cfg=toolpath_cfg, profile=profile)
+    return plan_motion_of(tp, platform_z=platform_z, solid_H=solid_H, toolpath_cfg=toolpath_cfg, profile=profile,
+                          consume=True)
 
 
 def _profile(profile: MachineProfile | str | Path | None) -> MachineProfile:
@@ -80,12 +81,14 @@ def plan_toolpaths(layers: Sequence[trimesh.Trimesh], *, platform_z: float, tool
 
 
 def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
-                   toolpath_cfg: ToolpathConfig | None = None, profile: MachineProfile | str | None = None
-                   ) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
+                   toolpath_cfg: ToolpathConfig | None = None, profile: MachineProfile | str | None = None,
+                   consume: bool = False) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
     """The motion step: the head clear of the platform, the exact collision check, travels lifted, axes tilted and
-    turned into reach, then the machine program (IK, extrusion) and the print's metrics (:func:`plan_print`)."""
+    turned into reach, then the machine program (IK, extrusion) and the print's metrics (:func:`plan_print`).
+    With ``consume`` the arrays of ``tp`` are taken over (``tp`` is left empty), so that the toolpaths as they came
+    are freed once the lifts have copied them, not held by the caller beside the program."""
     profile, cfg = _profile(profile), toolpath_cfg or ToolpathConfig()
-    tp = dataclasses.replace(tp, attrs=dict(tp.attrs))   # the toolpaths step's figures leave its attrs, not the caller's
+    tp = _taken(tp) if consume else dataclasses.replace(tp, attrs=dict(tp.attrs))   # attrs: the caller's unchanged
     held, n_merged = tp.attrs.pop("held_beads", None), tp.attrs.pop("n_merged_short_moves", 0)
     toolpaths_s = tp.attrs.pop("toolpaths_s", 0.0)
     t1 = time.perf_counter()
@@ -128,6 +131,14 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     return tp, program, metrics, report
+
+
+def _taken(tp: Toolpaths) -> Toolpaths:
+    """Toolpaths holding the arrays of ``tp`` (and a copy of its attrs), ``tp`` left with empty arrays."""
+    out = dataclasses.replace(tp, attrs=dict(tp.attrs))
+    for name in ("layer", "path", "xyz", "axis", "thickness", "width", "extrude"):
+        setattr(tp, name, getattr(tp, name)[:0].copy())
+    return out
 
 
 def _vertical_head(tp: Toolpaths, profile: MachineProfile) -> tuple[Toolpaths, dict | None]:

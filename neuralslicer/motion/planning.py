@@ -144,9 +144,10 @@ def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
         out[0], out[1:] = v, a
         return out
 
+    # the IK first: its temporaries are freed before the moves' arrays are made
+    b, c, singular, _ = inverse_kinematics(first(tp.axis, tp.axis[0]), kin)   # the limits: check_limits
     xyz = first(tp.xyz, tp.xyz[0] + lift * tp.axis[0])
     layer, extrude = first(tp.layer, tp.layer[0]), first(tp.extrude, False)
-    b, c, singular, _ = inverse_kinematics(first(tp.axis, tp.axis[0]), kin)   # the limits: check_limits
     seg, drot = np.zeros(m), np.zeros(m)
     for a in range(1, m, ROWS_PER_BLOCK):
         z = min(a + ROWS_PER_BLOCK, m)
@@ -176,17 +177,23 @@ def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
 def _split_rotary(mv: dict[str, np.ndarray], max_step_deg: float) -> dict[str, np.ndarray]:
     """Moves whose rotary change exceeds the maximal step split into equal parts (linear in part xyz
     and in B, C; filament and time shared); the source waypoint is kept on the last part, which ends
-    exactly on the move's own pose. Without a move to split, the arrays are ``mv``'s (no copies)."""
+    exactly on the move's own pose. Without a move to split, the arrays are ``mv``'s (no copies). Empties ``mv``
+    (each of its arrays is freed once its split copy is made)."""
     m = len(mv["xyz"])
-    nsub = np.maximum(1, np.ceil(mv["drot"] / max_step_deg - 1e-9)).astype(np.int64)
+    nsub = np.maximum(1, np.ceil(mv.pop("drot") / max_step_deg - 1e-9)).astype(np.int64)
     nsub[0] = 1
-    kind = np.where(mv["extrude"], PRINT, TRAVEL).astype(np.int8)
+    kind = np.where(mv.pop("extrude"), PRINT, TRAVEL).astype(np.int8)
+    mv.pop("singular", None)
     if not (nsub > 1).any():
-        return {**{k: mv[k] for k in ("xyz", "b", "c", "de", "dt", "source", "layer")}, "kind": kind}
+        return {**{k: mv.pop(k) for k in ("xyz", "b", "c", "de", "dt", "source", "layer")}, "kind": kind}
     rep = np.repeat(np.arange(m), nsub)
+    parts = nsub[rep]                                     # parts of the move each part belongs to
     k = np.arange(len(rep)) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 1
-    inner = np.flatnonzero(k < nsub[rep])                 # parts before the last one of a split move
-    frac = k[inner] / nsub[rep[inner]]
+    del nsub
+    inner = np.flatnonzero(k < parts)                     # parts before the last one of a split move
+    last = k == parts
+    frac = k[inner] / parts[inner]
+    del k
     prev = np.maximum(rep[inner] - 1, 0)
 
     def lerp(a: np.ndarray) -> np.ndarray:
@@ -194,9 +201,14 @@ def _split_rotary(mv: dict[str, np.ndarray], max_step_deg: float) -> dict[str, n
         out[inner] = a[prev] + (a[rep[inner]] - a[prev]) * (frac if a.ndim == 1 else frac[:, None])
         return out
 
-    return {"xyz": lerp(mv["xyz"]), "b": lerp(mv["b"]), "c": lerp(mv["c"]), "de": mv["de"][rep] / nsub[rep],
-            "dt": mv["dt"][rep] / nsub[rep], "kind": kind[rep],
-            "source": np.where(k == nsub[rep], mv["source"][rep], -1), "layer": mv["layer"][rep]}
+    out = {name: lerp(mv.pop(name)) for name in ("xyz", "b", "c")}
+    out["de"] = np.divide(mv.pop("de")[rep], parts)
+    out["dt"] = np.divide(mv.pop("dt")[rep], parts)
+    out["kind"] = kind[rep]
+    del kind
+    out["source"] = np.where(last, mv.pop("source")[rep], -1)
+    out["layer"] = mv.pop("layer")[rep]
+    return out
 
 
 def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tuple[dict[str, np.ndarray], int]:
@@ -204,11 +216,17 @@ def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tup
     the pose of the move before / the travel's end); the moves and the number of retractions. Empties
     ``e`` (its arrays are freed as their copies are made)."""
     ex, f = profile.extrusion, profile.feeds
-    e_len = np.linalg.norm(np.diff(e["xyz"], axis=0, prepend=e["xyz"][:1]), axis=1)
+    xyz, m = e["xyz"], len(e["xyz"])
+    e_len = np.zeros(m)
+    for a in range(1, m, ROWS_PER_BLOCK):                 # in blocks: the (m, 3) differences of a long print
+        z = min(a + ROWS_PER_BLOCK, m)
+        e_len[a:z] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
     trav = e["kind"] == TRAVEL
     starts = np.flatnonzero(trav & ~np.concatenate([[False], trav[:-1]]))
     ends = np.flatnonzero(trav & ~np.concatenate([trav[1:], [False]]))
-    cum = np.concatenate([[0.0], np.cumsum(np.where(trav, e_len, 0.0))])
+    cum = np.zeros(m + 1)
+    e_len[~trav] = 0.0
+    np.cumsum(e_len, out=cum[1:])
     run_len = cum[ends + 1] - cum[starts]
     do = (run_len > ex.retract_min_travel) & (starts > 0) & (ex.retract_mm > 0 or ex.prime_mm > 0)
     r_at, p_at = starts[do], ends[do]
@@ -219,7 +237,7 @@ def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tup
     order = np.argsort(ins_idx, kind="stable")
     ins_idx, ins_from, ins_de, ins_dt = ins_idx[order], ins_from[order], ins_de[order], ins_dt[order]
     ins = lambda a, v: np.insert(a, ins_idx, v, axis=0)  # noqa: E731
-    del e_len, trav, cum
+    del e_len, trav, cum, xyz
     out = {}
     for k in ("xyz", "b", "c", "layer"):             # popped: each input array is freed once copied
         a = e.pop(k)
@@ -530,7 +548,9 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
         "n_c_unwinds": n_unwinds,
         "n_inserted_rotary": int(n_inserted_rotary),
         "n_retractions": n_retractions,
-        "max_rotary_step_deg": float(np.max(np.abs(np.diff(machine[:, 3:5], axis=0)), initial=0.0)),
+        "max_rotary_step_deg": max((float(np.max(np.abs(np.diff(machine[a:a + ROWS_PER_BLOCK + 1, 3:5], axis=0)),
+                                                 initial=0.0)) for a in range(0, len(machine), ROWS_PER_BLOCK)),
+                                   default=0.0),
         "b_range_deg": [float(b_all.min()), float(b_all.max())],
         "c_range_deg": [float(machine[:, 4].min()), float(machine[:, 4].max())],
     }
@@ -564,7 +584,11 @@ def program_metrics(program: MachineProgram, times: tuple[FloatArray, FloatArray
     """Totals of a program: time, path length, waypoints, material, filament (``times``: its
     ``timing.schedule`` when already computed)."""
     timed = program_time(program, times)     # first: its schedule's arrays are the largest the metrics need
-    seg = np.linalg.norm(np.diff(program.part_xyz, axis=0), axis=1)
+    xyz, n = program.part_xyz, len(program.part_xyz)
+    seg = np.empty(max(n - 1, 0))
+    for a in range(1, n, ROWS_PER_BLOCK):        # in blocks: the (n, 3) differences of a long program
+        z = min(a + ROWS_PER_BLOCK, n)
+        seg[a - 1:z - 1] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
     kind = program.kind[1:]
     de = np.diff(program.extruder)
     area = filament_area(program.profile)

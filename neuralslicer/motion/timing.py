@@ -58,7 +58,7 @@ def junction_speeds(scaled: FloatArray, cruise: FloatArray, accel: FloatArray) -
     (1/s^2). The last move ends at rest; so does every move next to one without axis motion.
     """
     length, cos = _lengths_and_turns(scaled)
-    return _junctions(length, cos, cruise, accel)
+    return _junctions(length, cos, cruise, accel)[0]
 
 
 #: rows per block of the per-move terms (bounds the (rows, 5) temporaries)
@@ -82,8 +82,11 @@ def _lengths_and_turns(scaled: FloatArray) -> tuple[FloatArray, FloatArray]:
     return length, cos
 
 
-def _junctions(length: FloatArray, cos: FloatArray, cruise: FloatArray, accel: FloatArray) -> FloatArray:
-    """``junction_speeds`` from the moves' scaled lengths (n,) and turn cosines (n - 1,)."""
+def _junctions(length: FloatArray, cos: FloatArray, cruise: FloatArray, accel: FloatArray, p0: float | None = None
+               ) -> tuple[FloatArray, float]:
+    """``junction_speeds`` from the moves' scaled lengths (n,) and turn cosines (n - 1,), and the running sum of
+    the moves' reach at the last move. ``p0``: that sum at the move before, for a stretch of a program that
+    follows a move ending at rest (``schedule``'s blocks); the same numbers as the whole program's."""
     n = len(length)
     moving = length > _STILL
     cap = np.zeros(n)
@@ -91,7 +94,7 @@ def _junctions(length: FloatArray, cos: FloatArray, cruise: FloatArray, accel: F
         both = moving[:-1] & moving[1:]
         cap[:-1] = np.where(both, np.minimum(cruise[:-1], cruise[1:]) * 0.5 * (1.0 + cos), 0.0)
     reach = np.where(moving, 2.0 * accel * length ** 2, 0.0)      # v_end^2 - v_start^2 a move can make
-    p = np.cumsum(reach)
+    p = np.cumsum(reach) if p0 is None else np.cumsum(np.r_[p0, reach])[1:]   # one running sum, as a whole's
     del reach, moving
     # in place, a print of millions of moves holds three arrays here, not eight
     np.square(cap, out=cap)
@@ -100,11 +103,13 @@ def _junctions(length: FloatArray, cos: FloatArray, cruise: FloatArray, accel: F
     del cap
     sq -= p
     sq -= p
+    if p0 is not None and n:
+        sq[0] = min(sq[0], -p0)                                     # the move before ends at rest
     np.minimum.accumulate(sq, out=sq)                               # forward: J_k^2 <= J_{k-1}^2 + reach_k
     np.minimum(sq, 0.0, out=sq)
     sq += p
     np.maximum(sq, 0.0, out=sq)
-    return np.sqrt(sq, out=sq)
+    return np.sqrt(sq, out=sq), float(p[-1]) if n else (p0 or 0.0)
 
 
 def trapezoid_times(rate: FloatArray, accel: FloatArray, start: FloatArray, end: FloatArray) -> FloatArray:
@@ -120,49 +125,74 @@ def trapezoid_times(rate: FloatArray, accel: FloatArray, start: FloatArray, end:
 
 def schedule(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> tuple[FloatArray, FloatArray]:
     """Trapezoidal times (n,) and cruise-only times (n,) of the moves (the module docstring's model): what
-    ``move_times`` and ``program_time`` compute, for callers that need both."""
+    ``move_times`` and ``program_time`` compute, for callers that need both.
+
+    Computed in blocks of about ``_ROWS`` moves, each ending at a move that ends at rest (next to a move without
+    axis motion, as every retraction is): no speed limit crosses such a move, so each block's passes give the
+    whole program's numbers, and a long print holds its moves' lengths and the two results, not a dozen arrays."""
     machine = np.asarray(machine, np.float64).reshape(-1, 5)
     planned = np.asarray(planned_s, np.float64).reshape(-1)
     n = len(machine)
     v_lim, a_lim = axis_limits(feeds)
-    # per move, in blocks of rows: the scaled length and turn (junction_speeds), the largest scaled axis
-    # delta and the acceleration the slowest axis allows
-    length, cos, top, acc = np.empty(n), np.empty(max(n - 1, 0)), np.empty(n), np.empty(n)
-    prev = np.zeros((0, 5))  # the last scaled delta of the block before (turns across block ends)
+    length = np.empty(n)
     for a in range(0, n, _ROWS):
         z = min(a + _ROWS, n)
-        delta = np.empty((z - a, 5))
-        if a == 0:
-            delta[:1] = 0.0
-            np.subtract(machine[1:z], machine[:z - 1], out=delta[1:])
-        else:
-            np.subtract(machine[a:z], machine[a - 1:z - 1], out=delta)
-        scaled = delta / v_lim
-        top[a:z] = np.abs(scaled).max(axis=1)
-        with np.errstate(divide="ignore"):
-            acc[a:z] = np.min(a_lim / np.abs(delta), axis=1)
-        ln, turn = _lengths_and_turns(np.concatenate([prev, scaled]))
-        length[a:z] = ln[-(z - a):]
-        cos[max(a - 1, 0):z - 1] = turn
-        prev = scaled[-1:]
+        length[a:z] = np.linalg.norm(_deltas(machine, a, z) / v_lim, axis=1)
     moving = length > _STILL
-    nominal = np.where(moving | (planned > 0), np.maximum(planned, feeds.min_move_s), 0.0)
-    rate = np.where(moving, 1.0 / np.where(moving, np.maximum(nominal, top), 1.0), 0.0)
-    accel = np.where(moving, acc, 0.0)
-    del top, acc
-    junction = _junctions(length, cos, rate * length, accel)
-    del cos
-    cruise_t = np.where(moving, 1.0 / np.where(moving, rate, 1.0), nominal)
-    times = nominal
-    for a in range(0, n, _ROWS):                  # the moves' trapezoids from their entry to exit speeds
-        z = min(a + _ROWS, n)
-        m = moving[a:z]
-        w = np.where(m, length[a:z], 1.0)
-        start = (junction[a - 1:z - 1] if a else np.r_[0.0, junction[:z - 1]]) / w
-        end = junction[a:z] / w
-        r = rate[a:z][m]
-        times[a:z][m] = trapezoid_times(r, accel[a:z][m], np.minimum(start[m], r), np.minimum(end[m], r))
+    times, cruise_t = np.empty(n), np.empty(n)
+    p_end: float | None = None
+    for a, z in _blocks_at_rest(moving, _ROWS):
+        delta = _deltas(machine, a, z)
+        scaled = delta / v_lim
+        top = np.abs(scaled).max(axis=1)                 # the largest scaled axis delta
+        with np.errstate(divide="ignore"):
+            accel = np.min(a_lim / np.abs(delta), axis=1)   # the acceleration the slowest axis allows
+        del delta
+        cos = _lengths_and_turns(scaled)[1]
+        del scaled
+        ln, m, plan = length[a:z], moving[a:z], planned[a:z]
+        nominal = np.where(m | (plan > 0), np.maximum(plan, feeds.min_move_s), 0.0)
+        rate = np.where(m, 1.0 / np.where(m, np.maximum(nominal, top), 1.0), 0.0)
+        accel = np.where(m, accel, 0.0)
+        junction, p_end = _junctions(ln, cos, rate * ln, accel, p_end)
+        cruise_t[a:z] = np.where(m, 1.0 / np.where(m, rate, 1.0), nominal)
+        # the moves' trapezoids from their entry to exit speeds (the block's first move starts at rest)
+        w = np.where(m, ln, 1.0)
+        start = np.r_[0.0, junction[:-1]] / w
+        end = junction / w
+        r = rate[m]
+        nominal[m] = trapezoid_times(r, accel[m], np.minimum(start[m], r), np.minimum(end[m], r))
+        times[a:z] = nominal
     return times, cruise_t
+
+
+def _deltas(machine: FloatArray, a: int, z: int) -> FloatArray:
+    """Axis deltas (z - a, 5) of the moves a..z-1 (move 0 has none)."""
+    delta = np.empty((z - a, 5))
+    if a == 0:
+        delta[:1] = 0.0
+        np.subtract(machine[1:z], machine[:z - 1], out=delta[1:])
+    else:
+        np.subtract(machine[a:z], machine[a - 1:z - 1], out=delta)
+    return delta
+
+
+def _blocks_at_rest(moving: np.ndarray, rows: int) -> list[tuple[int, int]]:
+    """Blocks [a, z) of about ``rows`` moves covering all, each ending at a move that ends at rest (it or the next
+    one without axis motion) or at the program's end."""
+    n, blocks, a = len(moving), [], 0
+    while a < n:
+        s, w = min(a + rows, n) - 1, 4096
+        while s < n - 1:
+            hi = min(s + w, n - 1)
+            both = moving[s:hi] & moving[s + 1:hi + 1]
+            if not both.all():
+                s += int(np.argmin(both))
+                break
+            s, w = hi, 2 * w
+        blocks.append((a, s + 1))
+        a = s + 1
+    return blocks
 
 
 def move_times(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> FloatArray:

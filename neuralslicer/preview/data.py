@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from neuralslicer.motion.kinematics import forward_kinematics
 from neuralslicer.motion.planning import RETRACT, ProgramMoves
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
@@ -45,7 +46,8 @@ class MoveAttributes:
     tip, axis : (n, 3) float64 tool tip and unit tool axis in the part (build) frame, by forward kinematics;
     kind : (n,) int8 TRAVEL/PRINT/RETRACT; layer : (n,) int64; time_s : (n,) planned duration;
     length_mm : (n,) length of the move arriving at each pose (0 for the first); width_mm : (n,) bead width of the
-    toolpath waypoint the move belongs to; tilt_deg : (n,) angle of the tool axis from +z.
+    toolpath waypoint the move belongs to; tilt_deg : (n,) angle of the tool axis from +z. ``axis`` and ``tilt_deg``
+    may be None with the ``program`` they come from: the preview needs them only at the moves it keeps.
     """
 
     tip: FloatArray
@@ -55,7 +57,17 @@ class MoveAttributes:
     time_s: FloatArray
     length_mm: FloatArray
     width_mm: FloatArray
-    tilt_deg: FloatArray
+    tilt_deg: FloatArray | None
+    program: ProgramMoves | None = None
+
+    def axes_at(self, moves: IndexArray) -> tuple[FloatArray, FloatArray]:
+        """Tool axes (k, 3) and tilts (k,) of the moves ``moves`` (from the program where they are not kept)."""
+        if self.axis is not None:
+            return self.axis[moves], self.tilt_deg[moves]
+        m = self.program.machine[moves]
+        axis = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], self.program.profile.kinematics,
+                                  self.program.part_offset)[1]
+        return axis, tilt_degrees(axis)
 
 
 @dataclass
@@ -120,18 +132,33 @@ def waypoint_values(source: IndexArray, values: FloatArray) -> FloatArray:
     return np.asarray(values, np.float64)[source[pos[np.minimum(nxt, len(pos) - 1)]]]
 
 
-def move_attributes(program: ProgramMoves, widths: FloatArray) -> MoveAttributes:
+def move_attributes(program: ProgramMoves, widths: FloatArray, axes: bool = True) -> MoveAttributes:
     """Every move's tip and axis by forward kinematics, and its length, bead width and tilt (``widths``: (w,) the
-    toolpaths' width per waypoint)."""
-    tip, axis = program.forward()
-    tip, axis = np.asarray(tip, np.float64), np.asarray(axis, np.float64)
+    toolpaths' width per waypoint). ``axes=False``: the axes and tilts left to :meth:`MoveAttributes.axes_at`, and
+    the tips and lengths made ``CHUNK_MOVES`` at a time (a long program's preview holds 40 bytes a move, not 120)."""
+    if axes:
+        tip, axis = program.forward()
+        tip, axis = np.asarray(tip, np.float64), np.asarray(axis, np.float64)
+        tilt = tilt_degrees(axis)
+    else:
+        machine, kin, n = program.machine, program.profile.kinematics, len(program.machine)
+        tip, axis, tilt = np.empty((n, 3)), None, None
+        for a in range(0, n, CHUNK_MOVES):
+            m = machine[a:a + CHUNK_MOVES]
+            tip[a:a + CHUNK_MOVES] = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], kin, program.part_offset)[0]
     length = np.zeros(len(tip))
-    if len(tip) > 1:
-        length[1:] = np.linalg.norm(np.diff(tip, axis=0), axis=1)
-    tilt = np.degrees(np.arccos(np.clip(axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-300), -1.0, 1.0)))
+    for a in range(1, len(tip), CHUNK_MOVES):
+        z = min(a + CHUNK_MOVES, len(tip))
+        length[a:z] = np.linalg.norm(tip[a:z] - tip[a - 1:z - 1], axis=1)
     return MoveAttributes(tip, axis, np.asarray(program.kind, np.int8), np.asarray(program.layer, np.int64),
                           np.asarray(program.time_s, np.float64), length,
-                          waypoint_values(np.asarray(program.source, np.int64), widths), tilt)
+                          waypoint_values(np.asarray(program.source, np.int64), widths), tilt,
+                          None if axes else program)
+
+
+def tilt_degrees(axis: FloatArray) -> FloatArray:
+    """Angle (k,) of tool axes (k, 3) from +z, in degrees."""
+    return np.degrees(np.arccos(np.clip(axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-300), -1.0, 1.0)))
 
 
 def colliding_moves(source: IndexArray, waypoints: IndexArray) -> IndexArray:
@@ -364,8 +391,9 @@ def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFA
     width = np.divide(width, span, out=attrs.width_mm[moves].copy(), where=span > 1e-12)
     feed = np.divide(span, dt, out=np.zeros(len(kept)), where=dt > 1e-12)
     level = detail_levels(sig[kept], layer[kept], hit[kept], draw_budget)
-    return PreviewData(move=moves.astype(np.int64), tip=tip[kept], axis=attrs.axis[moves], layer=layer[kept],
-                       kind=kind[kept], tilt_deg=attrs.tilt_deg[moves], feed_mm_s=feed, width_mm=width,
+    axis, tilt = attrs.axes_at(moves)
+    return PreviewData(move=moves.astype(np.int64), tip=tip[kept], axis=axis, layer=layer[kept],
+                       kind=kind[kept], tilt_deg=tilt, feed_mm_s=feed, width_mm=width,
                        level=level, collisions=np.flatnonzero(hit[kept]).astype(np.int64),
                        max_deviation_mm=max_dev, mean_deviation_mm=mean_dev, n_moves=n, n_drawable=len(draw),
                        draw_budget=draw_budget, n_collided=n_collided)
@@ -375,7 +403,7 @@ def preview_data(program: ProgramMoves, widths: FloatArray, collided_waypoints: 
                  max_points: int = DEFAULT_MAX_POINTS, draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
     """The decimated moves of a program to draw: ``widths`` (w,) the toolpaths' bead width per waypoint,
     ``collided_waypoints`` the toolpath waypoint indices whose head collides (``CollisionReport.indices``)."""
-    attrs = move_attributes(program, widths)
+    attrs = move_attributes(program, widths, axes=False)
     return decimate(attrs, colliding_moves(np.asarray(program.source, np.int64), collided_waypoints), max_points,
                     draw_budget)
 
