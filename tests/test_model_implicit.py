@@ -271,6 +271,7 @@ def test_values_above_counts_and_maxes_like_every_point_evaluated(sphere, spread
 
     monkeypatch.setattr(grid, "ABOVE_DIRECT", 1_000)
     monkeypatch.setattr(grid, "ABOVE_CUBES", 2_000)
+    monkeypatch.setattr(grid, "ABOVE_BLOCK", 777)         # the points' bounds made in blocks
     pts = sphere_points(40_000, 0.0, 9.8 + spread)
     calls = []
 

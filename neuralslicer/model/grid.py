@@ -102,6 +102,8 @@ def inside_bounds(fn: ValueFn, lo_hi: FloatArray, spacing: float, lipschitz: flo
 ABOVE_CUBES = 250_000
 #: fewer points than this are all evaluated (the cubes would cost more than they save)
 ABOVE_DIRECT = 100_000
+#: points whose bounds are made at a time
+ABOVE_BLOCK = 1 << 18
 
 
 def values_above(fn: ValueFn, points: FloatArray, tol: float, lipschitz: float = 1.0) -> tuple[int, float]:
@@ -122,15 +124,23 @@ def values_above(fn: ValueFn, points: FloatArray, tol: float, lipschitz: float =
     span = np.maximum(hi - lo, 1e-9)
     size = float(np.cbrt(np.prod(span) / ABOVE_CUBES))
     dims = np.floor(span / size).astype(np.int64) + 1
-    flat = np.ravel_multi_index(np.floor((x - lo) / size).astype(np.int64).T, dims)
+    flat = np.zeros(len(x), np.int64)                           # the cube of each point, row-major over dims
+    for axis in range(3):
+        if axis:
+            flat *= dims[axis]
+        flat += np.floor((x[:, axis] - lo[axis]) / size).astype(np.int64)
     held = np.zeros(int(np.prod(dims)), bool)
     held[flat] = True
     cubes = np.flatnonzero(held)
     rank = np.cumsum(held) - 1                                  # the row of each held cube among ``cubes``
     centres = lo + (np.stack(np.unravel_index(cubes, dims), axis=1) + 0.5) * size
-    row = rank[flat]
-    d = x - centres[row]
-    upper = np.asarray(fn(centres), np.float64)[row] + lipschitz * np.sqrt(np.einsum("ij,ij->i", d, d))
+    at_centre = np.asarray(fn(centres), np.float64)
+    upper = np.empty(len(x))
+    for a in range(0, len(x), ABOVE_BLOCK):                     # in blocks: the (n, 3) offsets of a long print
+        row = rank[flat[a:a + ABOVE_BLOCK]]
+        d = x[a:a + ABOVE_BLOCK] - centres[row]
+        upper[a:a + ABOVE_BLOCK] = at_centre[row] + lipschitz * np.sqrt(np.einsum("ij,ij->i", d, d))
+    del flat
     near = np.flatnonzero(upper > tol)
     h = np.asarray(fn(x[near]), np.float64)
     best = float(h.max(initial=-np.inf))

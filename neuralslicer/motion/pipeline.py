@@ -112,6 +112,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     program = plan_motion(tp, profile, platform_z=platform_z)
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
     program.attrs["features"] = feature_runs(program, tp.path, tp.attrs.get("path_kinds", ""))
+    release_freed_memory()     # the planning's temporaries: the time estimate's arrays come on top of the program
     t4 = time.perf_counter()
     metrics = program_metrics(program)
     if vertical is not None:

@@ -6,6 +6,7 @@ from typing import ClassVar, Self
 
 import numpy as np
 
+from neuralslicer.allocator import release_freed_memory
 from neuralslicer.errors import PlanError
 from neuralslicer.motion.kinematics import (ROWS_PER_BLOCK, forward_kinematics, inverse_kinematics, machine_position,
                                             tool_axis, workpiece_position)
@@ -518,6 +519,7 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     n_inserted_rotary = len(e["xyz"]) - n_moves
     del mv                                         # e may share its arrays: freed as _retract_and_prime copies
     e, n_retractions = _retract_and_prime(e, profile)
+    release_freed_memory()     # the IK's and the splits' temporaries: the program's arrays are the next to come
     n = len(e["xyz"])
     machine = np.empty((n, 5))
     machine_position(e["xyz"], e["b"], e["c"], kin, offset, out=machine[:, :3])
