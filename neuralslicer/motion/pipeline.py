@@ -127,10 +127,12 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     metrics["thickness_mm"] = {"min": float(tp.thickness[on].min()), "mean": float(tp.thickness[on].mean()),
                                "max": float(tp.thickness[on].max())}
     if solid_H is not None:
+        release_freed_memory()     # the time estimate's arrays: the count below makes its own
         outside, highest = values_above(solid_H, tp.xyz[on & tp.extrude], OUTSIDE_TOL)
         metrics["n_waypoints_outside_solid"], metrics["max_H_at_waypoints"] = outside, highest
     metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
+    release_freed_memory()         # the store's write of the toolpaths and the program comes next
     return tp, program, metrics, report
 
 

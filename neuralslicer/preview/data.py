@@ -358,12 +358,15 @@ def detail_levels(sig: FloatArray, layer: IndexArray, keep_also: BoolArray, draw
 
 
 def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFAULT_MAX_POINTS,
-             draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
+             draw_budget: int = DEFAULT_DRAW_BUDGET, consume: bool = False) -> PreviewData:
     """The moves to draw (see the module): at most ``max_points`` (more only where the runs' ends and the
-    collisions alone exceed it), with coarser nested levels of at most ``draw_budget`` for wide views."""
+    collisions alone exceed it), with coarser nested levels of at most ``draw_budget`` for wide views. With
+    ``consume`` the tips of ``attrs`` are dropped once the drawable ones are copied (``attrs.tip`` is None after)."""
     n = len(attrs.tip)
     draw = np.flatnonzero(attrs.kind != RETRACT)
     tip, kind, layer = attrs.tip[draw], attrs.kind[draw], attrs.layer[draw]
+    if consume:
+        attrs.tip = None
     hit = np.zeros(len(draw), bool)
     marked = collided[np.isin(collided, draw)]
     n_collided = len(marked)
@@ -405,5 +408,5 @@ def preview_data(program: ProgramMoves, widths: FloatArray, collided_waypoints: 
     ``collided_waypoints`` the toolpath waypoint indices whose head collides (``CollisionReport.indices``)."""
     attrs = move_attributes(program, widths, axes=False)
     return decimate(attrs, colliding_moves(np.asarray(program.source, np.int64), collided_waypoints), max_points,
-                    draw_budget)
+                    draw_budget, consume=True)
 
