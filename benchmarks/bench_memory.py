@@ -1,6 +1,7 @@
-"""Peak memory of the whole slicing command, step by step: the ring, the coin, the bunny and the bunny at 400 mm.
+"""Peak memory of the whole slicing command, step by step: the ring, the coin, the bunny, the bunny at 400 mm
+and at 0.2 mm layers.
 
-    .venv/bin/python benchmarks/bench_memory.py [NAME ...]      # default: ring coin bunny-planar bunny bunny-400mm
+    .venv/bin/python benchmarks/bench_memory.py [NAME ...]      # default: every case in CASES
 
 Each case runs `neuralslicer slice` in a fresh store and Prefect home. Every second the command's processes (the
 command, its local API server, the export's forked helper) are sampled: the sum of their resident sets (RSS: a page
@@ -39,6 +40,9 @@ CASES: dict[str, tuple[Path, float, list[str]]] = {
     "bunny-planar": (DATA / "bunny_closed_low_res.stl", 1.0, ["--objectives", "none"]),
     "bunny": (DATA / "bunny_closed_low_res.stl", 1.0, []),
     "bunny-400mm": (DATA / "bunny_closed_low_res.stl", 2.0, []),
+    # a 0.4 mm nozzle's 0.2 mm layers (issue 43), planar: one print of 37M waypoints
+    "bunny-0.2mm-reprap-planar": (DATA / "bunny_closed_low_res.stl", 1.0,
+                                  ["--machine", "reprap_5axis", "--layer-height", "0.2", "--objectives", "none"]),
 }
 
 
