@@ -197,9 +197,7 @@ def check_collisions(tp: Toolpaths, nozzle: Nozzle, platform_z: float, min_heigh
     if min_height is None:
         min_height = default_min_height(tp)
     material = PrintedMaterial.of_toolpaths(tp) if material is None else material
-    printing = tp.path >= 0
-    if int(printing.sum()) != material.n_ranks:
-        raise ValueError(f"the material holds {material.n_ranks} printing waypoints, the toolpaths {int(printing.sum())}")
+    printing = material.printing_of(tp)
     asked = None if only is None else np.unique(np.asarray(only, np.int64))
     found, before = [], 0
     for lo in range(0, n, CHECK_BLOCK):
@@ -233,7 +231,7 @@ def _check_block(tp: Toolpaths, lo: int, hi: int, ask: IndexArray, visible: Inde
     kind[plat - lo] = PLATFORM
     # the part: the waypoints, then the poses inside the moves arriving at them (from the waypoint before the block)
     first = max(lo - 1, 0)
-    s_xyz, s_axis, s_to = travel_samples(_waypoints(tp, first, hi), travel_spacing)
+    s_xyz, s_axis, s_to = travel_samples(tp.rows(first, hi), travel_spacing)
     s_to += first - lo
     wanted = np.zeros(m, bool)
     wanted[local] = True
@@ -251,9 +249,3 @@ def _check_block(tp: Toolpaths, lo: int, hi: int, ask: IndexArray, visible: Inde
     hit[to[new]], loc[to[new]], kind[to[new]] = True, where[new], TRAVEL_PATH
     idx = np.flatnonzero(hit)
     return CollisionReport((idx + lo).astype(np.int64), loc[idx], kind[idx])
-
-
-def _waypoints(tp: Toolpaths, lo: int, hi: int) -> Toolpaths:
-    """The waypoints [lo, hi) of a print as views (no copy)."""
-    return Toolpaths(layer=tp.layer[lo:hi], path=tp.path[lo:hi], xyz=tp.xyz[lo:hi], axis=tp.axis[lo:hi],
-                     thickness=tp.thickness[lo:hi], width=tp.width[lo:hi], extrude=tp.extrude[lo:hi])

@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 
 from neuralslicer.toolpath.types import Toolpaths
-from neuralslicer.types import FloatArray, IndexArray
+from neuralslicer.types import BoolArray, FloatArray, IndexArray
 
 #: first key of a cube with no point
 EMPTY = np.iinfo(np.int64).max
@@ -138,11 +138,16 @@ class PrintedMaterial:
         """The points (m, 3) in (cube, time) order."""
         return self.columns.T
 
-    def visible_at(self, tp: Toolpaths) -> IndexArray:
-        """Per waypoint of ``tp`` (n,), the ranks it sees: the printing waypoints before it (``time < visible``)."""
-        on = (tp.path >= 0).astype(np.int64)
+    def printing_of(self, tp: Toolpaths) -> BoolArray:
+        """The printing waypoints of ``tp`` (n,) (``path >= 0``), which must be as many as the ranks held here."""
+        on = tp.path >= 0
         if int(on.sum()) != self.n_ranks:
             raise ValueError(f"the material holds {self.n_ranks} printing waypoints, the toolpaths {int(on.sum())}")
+        return on
+
+    def visible_at(self, tp: Toolpaths) -> IndexArray:
+        """Per waypoint of ``tp`` (n,), the ranks it sees: the printing waypoints before it (``time < visible``)."""
+        on = self.printing_of(tp).astype(np.int64)
         return np.cumsum(on) - on
 
     def cell_size(self, level: int) -> float:

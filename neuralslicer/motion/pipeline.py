@@ -139,7 +139,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
 def _taken(tp: Toolpaths) -> Toolpaths:
     """Toolpaths holding the arrays of ``tp`` (and a copy of its attrs), ``tp`` left with empty arrays."""
     out = dataclasses.replace(tp, attrs=dict(tp.attrs))
-    for name in ("layer", "path", "xyz", "axis", "thickness", "width", "extrude"):
+    for name in Toolpaths.ARRAYS:
         setattr(tp, name, getattr(tp, name)[:0].copy())
     return out
 

@@ -12,7 +12,7 @@ from neuralslicer.motion.kinematics import (ROWS_PER_BLOCK, forward_kinematics, 
                                             tool_axis, workpiece_position)
 from neuralslicer.motion.profile import Feeds, MachineProfile
 from neuralslicer.motion.timing import program_time
-from neuralslicer.toolpath.types import Toolpaths
+from neuralslicer.toolpath.types import Toolpaths, segment_lengths
 from neuralslicer.types import FloatArray, IndexArray
 
 PROGRAM_SCHEMA_VERSION = 1
@@ -149,10 +149,7 @@ def _moves(tp: Toolpaths, profile: MachineProfile) -> dict[str, np.ndarray]:
     b, c, singular, _ = inverse_kinematics(first(tp.axis, tp.axis[0]), kin)   # the limits: check_limits
     xyz = first(tp.xyz, tp.xyz[0] + lift * tp.axis[0])
     layer, extrude = first(tp.layer, tp.layer[0]), first(tp.extrude, False)
-    seg, drot = np.zeros(m), np.zeros(m)
-    for a in range(1, m, ROWS_PER_BLOCK):
-        z = min(a + ROWS_PER_BLOCK, m)
-        seg[a:z] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
+    seg, drot = segment_lengths(xyz), np.zeros(m)
 
     def mean_over_move(v: np.ndarray) -> np.ndarray:        # (m,) mean of the values at a move's two ends
         out = np.zeros(m)
@@ -217,11 +214,8 @@ def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tup
     the pose of the move before / the travel's end); the moves and the number of retractions. Empties
     ``e`` (its arrays are freed as their copies are made)."""
     ex, f = profile.extrusion, profile.feeds
-    xyz, m = e["xyz"], len(e["xyz"])
-    e_len = np.zeros(m)
-    for a in range(1, m, ROWS_PER_BLOCK):                 # in blocks: the (m, 3) differences of a long print
-        z = min(a + ROWS_PER_BLOCK, m)
-        e_len[a:z] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
+    e_len = segment_lengths(e["xyz"])
+    m = len(e_len)
     trav = e["kind"] == TRAVEL
     starts = np.flatnonzero(trav & ~np.concatenate([[False], trav[:-1]]))
     ends = np.flatnonzero(trav & ~np.concatenate([trav[1:], [False]]))
@@ -238,7 +232,7 @@ def _retract_and_prime(e: dict[str, np.ndarray], profile: MachineProfile) -> tup
     order = np.argsort(ins_idx, kind="stable")
     ins_idx, ins_from, ins_de, ins_dt = ins_idx[order], ins_from[order], ins_de[order], ins_dt[order]
     ins = lambda a, v: np.insert(a, ins_idx, v, axis=0)  # noqa: E731
-    del e_len, trav, cum, xyz
+    del e_len, trav, cum
     out = {}
     for k in ("xyz", "b", "c", "layer"):             # popped: each input array is freed once copied
         a = e.pop(k)
@@ -586,11 +580,7 @@ def program_metrics(program: MachineProgram, times: tuple[FloatArray, FloatArray
     """Totals of a program: time, path length, waypoints, material, filament (``times``: its
     ``timing.schedule`` when already computed)."""
     timed = program_time(program, times)     # first: its schedule's arrays are the largest the metrics need
-    xyz, n = program.part_xyz, len(program.part_xyz)
-    seg = np.empty(max(n - 1, 0))
-    for a in range(1, n, ROWS_PER_BLOCK):        # in blocks: the (n, 3) differences of a long program
-        z = min(a + ROWS_PER_BLOCK, n)
-        seg[a - 1:z - 1] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
+    seg = segment_lengths(program.part_xyz)[1:]
     kind = program.kind[1:]
     de = np.diff(program.extruder)
     area = filament_area(program.profile)

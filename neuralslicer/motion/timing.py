@@ -65,16 +65,20 @@ def junction_speeds(scaled: FloatArray, cruise: FloatArray, accel: FloatArray) -
 _ROWS = 1 << 19
 
 
-def _lengths_and_turns(scaled: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _lengths_and_turns(scaled: FloatArray, length: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
     """Lengths (n,) of the scaled moves and the cosine (n - 1,) of the angle between each and the next
-    (0-length moves count as direction 0), in blocks of rows."""
+    (0-length moves count as direction 0), in blocks of rows (``length``: the lengths, when known already)."""
     n = len(scaled)
-    length, cos = np.empty(n), np.empty(max(n - 1, 0))
+    known = length is not None
+    length, cos = (length if known else np.empty(n)), np.empty(max(n - 1, 0))
     prev = None
     for a in range(0, n, _ROWS):
         block = scaled[a:a + _ROWS]
-        ln = np.linalg.norm(block, axis=1)
-        length[a:a + len(block)] = ln
+        if known:
+            ln = length[a:a + len(block)]
+        else:
+            ln = np.linalg.norm(block, axis=1)
+            length[a:a + len(block)] = ln
         unit = block / np.where(ln > _STILL, ln, 1.0)[:, None]
         pair = unit if prev is None else np.concatenate([prev, unit])
         cos[max(a - 1, 0):a + len(block) - 1] = np.clip(np.einsum("ij,ij->i", pair[:-1], pair[1:]), -1.0, 1.0)
@@ -148,9 +152,9 @@ def schedule(machine: FloatArray, planned_s: FloatArray, feeds: Feeds) -> tuple[
         with np.errstate(divide="ignore"):
             accel = np.min(a_lim / np.abs(delta), axis=1)   # the acceleration the slowest axis allows
         del delta
-        cos = _lengths_and_turns(scaled)[1]
-        del scaled
         ln, m, plan = length[a:z], moving[a:z], planned[a:z]
+        cos = _lengths_and_turns(scaled, ln)[1]
+        del scaled
         nominal = np.where(m | (plan > 0), np.maximum(plan, feeds.min_move_s), 0.0)
         rate = np.where(m, 1.0 / np.where(m, np.maximum(nominal, top), 1.0), 0.0)
         accel = np.where(m, accel, 0.0)

@@ -22,6 +22,7 @@ import numpy as np
 from neuralslicer.motion.kinematics import forward_kinematics
 from neuralslicer.motion.planning import RETRACT, ProgramMoves
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS
+from neuralslicer.toolpath.types import segment_lengths
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
 
 #: at most this many coarser levels
@@ -135,7 +136,7 @@ def waypoint_values(source: IndexArray, values: FloatArray) -> FloatArray:
 def move_attributes(program: ProgramMoves, widths: FloatArray, axes: bool = True) -> MoveAttributes:
     """Every move's tip and axis by forward kinematics, and its length, bead width and tilt (``widths``: (w,) the
     toolpaths' width per waypoint). ``axes=False``: the axes and tilts left to :meth:`MoveAttributes.axes_at`, and
-    the tips and lengths made ``CHUNK_MOVES`` at a time (a long program's preview holds 40 bytes a move, not 120)."""
+    the tips made ``CHUNK_MOVES`` at a time (a long program's preview holds 40 bytes a move, not 120)."""
     if axes:
         tip, axis = program.forward()
         tip, axis = np.asarray(tip, np.float64), np.asarray(axis, np.float64)
@@ -146,12 +147,8 @@ def move_attributes(program: ProgramMoves, widths: FloatArray, axes: bool = True
         for a in range(0, n, CHUNK_MOVES):
             m = machine[a:a + CHUNK_MOVES]
             tip[a:a + CHUNK_MOVES] = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], kin, program.part_offset)[0]
-    length = np.zeros(len(tip))
-    for a in range(1, len(tip), CHUNK_MOVES):
-        z = min(a + CHUNK_MOVES, len(tip))
-        length[a:z] = np.linalg.norm(tip[a:z] - tip[a - 1:z - 1], axis=1)
     return MoveAttributes(tip, axis, np.asarray(program.kind, np.int8), np.asarray(program.layer, np.int64),
-                          np.asarray(program.time_s, np.float64), length,
+                          np.asarray(program.time_s, np.float64), segment_lengths(tip),
                           waypoint_values(np.asarray(program.source, np.int64), widths), tilt,
                           None if axes else program)
 

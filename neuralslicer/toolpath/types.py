@@ -2,13 +2,26 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
 
 TOOLPATHS_SCHEMA_VERSION = 1
-_ARRAYS = ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")
+#: rows per block of :func:`segment_lengths` (bounds its (rows, 3) temporaries on a long print)
+SEGMENT_ROWS = 1 << 19
+
+
+def segment_lengths(xyz: FloatArray) -> FloatArray:
+    """Length (n,) of the move arriving at each of the points (n, 3) from the one before (0 for the first), in
+    blocks of rows."""
+    n = len(xyz)
+    d = np.zeros(n)
+    for a in range(1, n, SEGMENT_ROWS):
+        z = min(a + SEGMENT_ROWS, n)
+        d[a:z] = np.linalg.norm(xyz[a:z] - xyz[a - 1:z - 1], axis=1)
+    return d
 
 
 @dataclass
@@ -37,6 +50,9 @@ class Toolpaths:
         JSON-able settings and statistics (config, counts).
     """
 
+    #: the per-waypoint arrays, in the order they are stored
+    ARRAYS: ClassVar[tuple[str, ...]] = ("layer", "path", "xyz", "axis", "thickness", "width", "extrude")
+
     layer: IndexArray
     path: IndexArray
     xyz: FloatArray
@@ -57,10 +73,11 @@ class Toolpaths:
 
     def segment_lengths(self) -> FloatArray:
         """Length of the move arriving at each waypoint, ``(n,)`` (0 for the first)."""
-        d = np.zeros(len(self))
-        if len(self) > 1:
-            d[1:] = np.linalg.norm(np.diff(self.xyz, axis=0), axis=1)
-        return d
+        return segment_lengths(self.xyz)
+
+    def rows(self, lo: int, hi: int) -> "Toolpaths":
+        """The waypoints [lo, hi) as views of these arrays (no copy; no attrs)."""
+        return Toolpaths(**{name: getattr(self, name)[lo:hi] for name in self.ARRAYS})
 
     def deposited_volume(self) -> float:
         """Material volume (mm^3): sum over extruding moves of length x mean thickness x width."""
@@ -73,7 +90,7 @@ class Toolpaths:
 
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
         """Store-able form: (arrays, JSON attrs) for one zarr group."""
-        arrays = {name: np.ascontiguousarray(getattr(self, name)) for name in _ARRAYS}
+        arrays = {name: np.ascontiguousarray(getattr(self, name)) for name in self.ARRAYS}
         arrays["extrude"] = arrays["extrude"].astype(np.uint8)
         attrs = {"schema_version": TOOLPATHS_SCHEMA_VERSION, "units": "mm", "frame": "build",
                  **self.attrs}
