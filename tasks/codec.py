@@ -140,10 +140,8 @@ def read_program(ref: ArtifactRef) -> StoredBytes:
 def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram) -> tuple[Toolpaths, P, dict]:
     """Toolpaths, machine program and print metrics (the inverse of encode_motion); ``program``: ProgramMoves to
     read only the program's arrays that drawing it needs."""
-    store = ArtifactStore(ref.store, create=False)
-    names = [k for k in store.array_names(ref.path)
-             if k.startswith("toolpaths/") or k.startswith("program/") and k.split("/", 1)[1] in program.ARRAYS]
-    arrays, attrs = store.read(ref.path, names)
+    names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS] + [f"program/{k}" for k in program.ARRAYS]
+    arrays, attrs = ArtifactStore(ref.store, create=False).read(ref.path, names)
     part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
     return (
         Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]),
