@@ -118,8 +118,8 @@ def _objectives(variant: str, strength: bool) -> str:
     return base + (",sr" if strength else "")
 
 
-def _printed_map(store: Path, metrics: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Waypoints and collision flags of the printed program (the print whose counts match the metrics)."""
+def _printed_map(store: Path, metrics: dict):  # noqa: ANN202 - a CollisionMap
+    """Where the head of the printed program hits (the print whose counts match the metrics)."""
     from neuralslicer.storage import ArtifactStore, ArtifactRef
     from neuralslicer.tasks.codec import read_collision_map
 

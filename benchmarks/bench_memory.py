@@ -14,6 +14,7 @@ benchmarks/results/bench_memory.json and printed as a table.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -59,16 +60,27 @@ def scaled_model(model: Path, factor: float, folder: Path) -> Path:
     return path
 
 
-def tree_memory(root: psutil.Process) -> tuple[int, int]:
-    """(RSS sum, PSS sum) in bytes of a process and its descendants."""
+def tree_memory(root: psutil.Process) -> tuple[int, int, dict[str, float]]:
+    """(RSS sum, PSS sum) in bytes of a process and its descendants, and the PSS (GB) of each by role."""
     rss = pss = 0
+    parts: dict[str, float] = {}
     for proc in [root, *root.children(recursive=True)]:
         try:
             info = proc.memory_full_info()
+            role = "command" if proc.pid == root.pid else _role(proc)
         except (psutil.Error, OSError):
             continue
         rss, pss = rss + info.rss, pss + getattr(info, "pss", info.rss)
-    return rss, pss
+        parts[role] = parts.get(role, 0.0) + getattr(info, "pss", info.rss) / GB
+    return rss, pss, parts
+
+
+def _role(proc: psutil.Process) -> str:
+    """What a child of the command is: its local API server, the export's forked helper, or another process."""
+    cmdline = " ".join(proc.cmdline())
+    if "api_server" in cmdline or "uvicorn" in cmdline:
+        return "api_server"
+    return "helper" if proc.ppid() != 0 else "other"
 
 
 class Watch:
@@ -78,7 +90,7 @@ class Watch:
         """Watch ``proc`` until it exits."""
         self.proc, self.reserve = psutil.Process(proc.pid), reserve_gb * GB
         self.step = "start"
-        self.peaks: dict[str, dict[str, float]] = {}
+        self.peaks: dict[str, dict] = {}
         self.stopped_in: str | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -86,8 +98,11 @@ class Watch:
     def _run(self) -> None:
         """The sampling loop."""
         while self.proc.is_running() and self.proc.status() != psutil.STATUS_ZOMBIE:
-            rss, pss = tree_memory(self.proc)
-            peak = self.peaks.setdefault(self.step, {"rss_gb": 0.0, "pss_gb": 0.0})
+            rss, pss, parts = tree_memory(self.proc)
+            # at_start_pss_gb: what the step found held when it started (the command, what earlier steps left)
+            peak = self.peaks.setdefault(self.step, {"rss_gb": 0.0, "pss_gb": 0.0, "at_start_pss_gb": pss / GB})
+            if pss / GB >= peak["pss_gb"]:
+                peak["by_process_pss_gb"] = {k: round(v, 2) for k, v in sorted(parts.items())}
             peak["rss_gb"], peak["pss_gb"] = max(peak["rss_gb"], rss / GB), max(peak["pss_gb"], pss / GB)
             if psutil.virtual_memory().available < self.reserve and self.stopped_in is None:
                 self.stopped_in = self.step
@@ -96,10 +111,14 @@ class Watch:
             time.sleep(1.0)
 
 
-def run_case(name: str, reserve_gb: float) -> dict:
-    """One case in a fresh store: the peaks of the whole command and of each step, wall time, waypoints."""
+def run_case(name: str, reserve_gb: float, keep: Path | None = None) -> dict:
+    """One case in a fresh store: the peaks of the whole command and of each step, wall time, waypoints (``keep``: a
+    new folder to run it in and leave, with its store and outputs, for profiling the steps alone)."""
     model, factor, extra = CASES[name]
-    with tempfile.TemporaryDirectory(prefix=f"bench-memory-{name}-") as tmp:
+    if keep is not None:
+        keep.mkdir(parents=True)
+    with (contextlib.nullcontext(str(keep)) if keep is not None
+          else tempfile.TemporaryDirectory(prefix=f"bench-memory-{name}-")) as tmp:
         folder = Path(tmp)
         path = scaled_model(model, factor, folder)
         env = {**os.environ, "PREFECT_HOME": str(folder / "prefect"), "NEURALSLICER_CACHE_DIR": "off",
@@ -126,7 +145,8 @@ def run_case(name: str, reserve_gb: float) -> dict:
             "load_at_start": round(load, 2), "n_waypoints": m.get("n_waypoints"), "n_layers": m.get("n_layers"),
             "peak_rss_gb": round(max((p["rss_gb"] for p in peaks.values()), default=0.0), 2),
             "peak_pss_gb": round(max((p["pss_gb"] for p in peaks.values()), default=0.0), 2),
-            "steps": {k: {kk: round(v, 2) for kk, v in p.items()} for k, p in peaks.items()},
+            "steps": {k: {kk: round(v, 2) if isinstance(v, float) else v for kk, v in p.items()}
+                      for k, p in peaks.items()},
             "machine_memory_gb": round(psutil.virtual_memory().total / GB, 1), "tail": tail if proc.returncode else []}
 
 
@@ -135,10 +155,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("names", nargs="*", default=list(CASES), choices=list(CASES), metavar="NAME")
     parser.add_argument("--reserve-gb", type=float, default=2.0, help="stop a case that leaves less memory than this")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="run in this new folder and keep it (one case; its store and outputs, to profile steps)")
     args = parser.parse_args()
+    if args.keep is not None and len(args.names) != 1:
+        parser.error("--keep takes one case")
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
     for name in args.names:
-        results[name] = run_case(name, args.reserve_gb)
+        results[name] = run_case(name, args.reserve_gb, args.keep)
         RESULTS.parent.mkdir(exist_ok=True)
         RESULTS.write_text(json.dumps(results, indent=1) + "\n")
         r = results[name]

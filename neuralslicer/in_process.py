@@ -26,7 +26,7 @@ from neuralslicer.gcode.writers import gcode_bytes
 from neuralslicer.layers import LayerConfig, Layers, slice_layers
 from neuralslicer.model.solid import Solid, implicit_solid
 from neuralslicer.model.spec import ModelSpec, model_name
-from neuralslicer.motion.collision import CollisionReport, part_collisions
+from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
 from neuralslicer.motion.pipeline import plan_motion_of, plan_toolpaths
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.motion.profile import MachineProfile
@@ -205,16 +205,15 @@ def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN
         model=name, surface=chain.surface[0], surface_attrs=chain.surface[1], samples=chain.samples, cage=cage,
         cage_attrs={**cage.to_arrays()[1], **cage.summary()}, field=field_of(cage, chain.printed.field), field_history=history_of(chain.printed.field),
         layers=chain.printed.layers, toolpaths=motion.toolpaths, program=motion.program, print_metrics=motion.metrics,
-        collision_maps=maps, wall_s=dict(wall_s), stress=chain.stress, verify=chain.verify,
+        collision_maps=maps, collided=np.asarray(motion.collisions.indices, np.int64), wall_s=dict(wall_s),
+        stress=chain.stress, verify=chain.verify,
         attempts=[Attempt(label, field_of(cage, f), m.metrics) for label, f, m in chain.attempts],
         strength_rounds=rounds, gcode=chain.program)
 
 
-def _collision_map(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
-    """Waypoints of a print and which of them collide."""
-    hit = np.zeros(len(motion.toolpaths), bool)
-    hit[np.asarray(motion.collisions.indices, np.int64)] = True
-    return motion.toolpaths.xyz, hit
+def _collision_map(motion: Motion) -> CollisionMap:
+    """Where the head of a print hits, as its figure draws it."""
+    return CollisionMap.of_indices(motion.toolpaths.xyz, motion.collisions.indices)
 
 
 def slice_model(spec: ModelSpec, config: SliceConfig, out_dir: str | Path | None = None,

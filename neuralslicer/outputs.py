@@ -31,6 +31,7 @@ from neuralslicer.gcode.writers import write_gcode
 from neuralslicer.layers import Layers
 from neuralslicer.metrics import (heldout_surface_samples, layer_lpd_at, overhang_area_fraction, strength_angles,
                                   strength_satisfaction, support_angles)
+from neuralslicer.motion.collision import CollisionMap
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.preview import PREVIEW_FILE
 from neuralslicer.preview.data import PreviewData
@@ -42,6 +43,7 @@ from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
 from neuralslicer.toolpath.types import Toolpaths
+from neuralslicer.types import IndexArray
 
 #: print metrics copied into metrics.json
 PRINT_METRICS = (
@@ -93,7 +95,10 @@ class RunResults:
     #: the machine program (ProgramMoves where ``gcode`` holds its G-code: what the preview draws)
     program: ProgramMoves
     print_metrics: dict
-    collision_maps: dict[str, tuple[np.ndarray, np.ndarray]]
+    #: where the head hits, by print (the first print and the printed one), as their figure draws it
+    collision_maps: dict[str, CollisionMap]
+    #: the printed print's colliding waypoints (sorted indices into ``toolpaths``)
+    collided: IndexArray
     wall_s: dict[str, float]
     stress: StressSamples | None = None
     verify: tuple[dict[str, np.ndarray], dict[str, float]] | None = None
@@ -441,6 +446,7 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
         (1.7, lambda: _quiet((write_run_preview(d / PREVIEW_FILE, run),
                               release_freed_memory(), write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths)))),
     ]
+    release_freed_memory()   # what reading the run dropped (a first print's waypoints): not into the helper's share
     jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
@@ -504,9 +510,7 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
 def write_run_preview(path: Path, run: RunResults) -> PreviewData:
     """``preview.html`` of the run's program (beside print.gcode): its moves by forward kinematics, bead widths and
     the printed program's collisions; the decimated moves it draws."""
-    hits = run.collision_maps.get("printed")
-    collided = np.flatnonzero(hits[1]) if hits is not None else np.zeros(0, np.int64)
-    return write_preview(path, run.program, run.toolpaths.width, collided, run.model, run.print_metrics)
+    return write_preview(path, run.program, run.toolpaths.width, run.collided, run.model, run.print_metrics)
 
 
 def _quiet(_: Any) -> dict[str, str]:

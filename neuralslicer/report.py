@@ -8,7 +8,7 @@ import threading
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -24,6 +24,9 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 from neuralslicer.fileio import atomic_path  # noqa: E402
 from neuralslicer.metrics import overhang_area_fraction, support_angles  # noqa: E402
 from neuralslicer.toolpath.types import Toolpaths  # noqa: E402
+
+if TYPE_CHECKING:
+    from neuralslicer.motion.collision import CollisionMap
 
 
 #: one off-screen VTK render at a time in this process
@@ -176,23 +179,21 @@ def plot_learning_curves(path: Path, curves: dict[str, dict[str, np.ndarray]]) -
     _save(fig, path)
 
 
-def plot_collision_map(path: Path, prints: dict[str, tuple[np.ndarray, np.ndarray]], max_points: int = 40_000) -> None:
-    """Where the head hits: waypoints (n,3) of each print, grey, with the colliding ones (bool (n,)) in red,
-    one 3D view per print in the order given (the first field printed, then what resolved its collisions)."""
+def plot_collision_map(path: Path, prints: dict[str, CollisionMap]) -> None:
+    """Where the head hits: waypoints of each print, grey, with the colliding ones in red (each print's
+    :class:`CollisionMap`), one 3D view per print in the order given (the first field printed, then what resolved
+    its collisions)."""
     n = max(len(prints), 1)
     fig = plt.figure(figsize=(5.5 * n, 5.5))
-    for k, (label, (xyz, hit)) in enumerate(prints.items()):
+    for k, (label, m) in enumerate(prints.items()):
         ax = fig.add_subplot(1, n, k + 1, projection="3d")
-        ok = np.flatnonzero(~hit)
-        ok = ok[:: max(1, len(ok) // max_points)]
-        ax.scatter(*xyz[ok].T, s=0.6, c=xyz[ok, 2], cmap="Greys", vmin=xyz[:, 2].min() - 0.6 * np.ptp(xyz[:, 2]),
+        z_lo, z_hi = (m.bounds[0, 2], m.bounds[1, 2]) if len(m.bounds) else (0.0, 0.0)
+        ax.scatter(*m.clear.T, s=0.6, c=m.clear[:, 2], cmap="Greys", vmin=z_lo - 0.6 * (z_hi - z_lo),
                    alpha=0.5, linewidths=0)
-        bad = np.flatnonzero(hit)
-        bad = bad[:: max(1, len(bad) // max_points)]
-        ax.scatter(*xyz[bad].T, s=3, c="red", linewidths=0)
-        _equal_3d(ax, xyz)
+        ax.scatter(*m.hit.T, s=3, c="red", linewidths=0)
+        _equal_3d(ax, m.bounds)
         ax.view_init(elev=20, azim=-60)
-        ax.set_title(f"{label}\n{int(hit.sum()):,} colliding of {len(hit):,} waypoints", fontsize=9)
+        ax.set_title(f"{label}\n{m.n_hit:,} colliding of {m.n_waypoints:,} waypoints", fontsize=9)
     fig.suptitle("print head collisions (red) against earlier layers and the platform")
     _save(fig, path)
 

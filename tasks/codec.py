@@ -15,7 +15,7 @@ from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Solid
-from neuralslicer.motion.collision import CollisionReport, part_collisions
+from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
@@ -160,12 +160,11 @@ def n_platform_collisions(ref: ArtifactRef) -> int:
     return int(attrs_of(ref)["metrics"].get("n_platform_collisions", 0))
 
 
-def read_collision_map(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
-    """Waypoints (n,3) of a stored print and which of them collide (n,) bool."""
-    arrays, _ = read(ref, ["toolpaths/xyz", "collisions/indices"])
-    hit = np.zeros(len(arrays["toolpaths/xyz"]), bool)
-    hit[np.asarray(arrays["collisions/indices"], np.int64)] = True
-    return arrays["toolpaths/xyz"], hit
+def read_collision_map(ref: ArtifactRef, xyz: np.ndarray | None = None) -> CollisionMap:
+    """Where the head of a stored print hits, as its figure draws it (``xyz``: the print's waypoints (n,3) when
+    already read; else they are read and dropped again)."""
+    arrays, _ = read(ref, ["collisions/indices"] if xyz is not None else ["toolpaths/xyz", "collisions/indices"])
+    return CollisionMap.of_indices(arrays["toolpaths/xyz"] if xyz is None else xyz, arrays["collisions/indices"])
 
 
 def read_collided(ref: ArtifactRef) -> np.ndarray:
@@ -233,16 +232,17 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
     c = read_cage(cage)
     surface_mesh, surface_attrs = read_surface(surface)
     # the G-code comes from the store: of the program, the export reads what it draws
+    # the first print's map first: its waypoints are read and dropped before the printed print's arrays come
+    first = ({f"first print ({attempts[0][0]})": read_collision_map(attempts[0][2])}
+             if attempts and attempts[0][2] != motion else {})
     tp, program, print_metrics = read_motion(motion, ProgramMoves if program_ref is not None else MachineProgram)
     gcode = read_program(program_ref) if program_ref is not None else None
-    maps = {"printed": read_collision_map(motion)}
-    if attempts and attempts[0][2] != motion:
-        maps = {f"first print ({attempts[0][0]})": read_collision_map(attempts[0][2]), **maps}
+    maps = {**first, "printed": read_collision_map(motion, tp.xyz)}
     return RunResults(
         model=model.model, surface=surface_mesh, surface_attrs=surface_attrs, samples=read_samples(samples), cage=c,
         cage_attrs=attrs_of(cage), field=read_field(c, field), field_history=read_field_history(field),
         layers=read_layers(layers), toolpaths=tp, program=program, print_metrics=print_metrics,
-        collision_maps=maps, wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
+        collision_maps=maps, collided=read_collided(motion), wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
         stress=read_stress(stress) if stress is not None else None,
         verify=read(verify) if verify is not None else None,
         attempts=[Attempt(label, read_field(c, f), attrs_of(p)["metrics"]) for label, f, p in attempts],

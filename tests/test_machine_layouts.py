@@ -197,8 +197,9 @@ def test_every_shipped_profile_back_plots_its_program(tmp_path, layers, name):
     path = write_gcode(tmp_path / "print.gcode", prog)
     p, a, moves = _back_plot(path, prog)
     assert len(moves) == len(prog)
-    assert np.abs(p - prog.part_xyz).max() < 0.01
-    assert _angle_deg(a, prog.part_axis).max() < 0.01
+    tip, axis = prog.forward()
+    assert np.abs(p - tip).max() < 0.01
+    assert _angle_deg(a, axis).max() < 0.01
     on = prog.source >= 0                                 # the toolpath waypoints themselves
     assert np.abs(p[on] - tp.xyz[prog.source[on]]).max() < 0.01
     k = prof.kinematics
@@ -226,7 +227,7 @@ def test_a_head_with_limited_turns_unwinds(tmp_path, layers):
     assert metrics["n_c_unwinds"] >= 1
     assert prog.machine[:, 4].min() >= -360.0 - 1e-6 and prog.machine[:, 4].max() <= 360.0 + 1e-6
     p, a, _ = _back_plot(write_gcode(tmp_path / "p.ngc", prog), prog)
-    assert np.abs(p - prog.part_xyz).max() < 0.01
+    assert np.abs(p - prog.forward()[0]).max() < 0.01
 
 
 # LinuxCNC's trt kinematics (src/emc/kinematics/trtfuncs: xyzbc / xyzac inverse kinematics, world -> joints, with
@@ -365,8 +366,9 @@ def test_the_ring_prints_on_every_shipped_profile(ring_path, tmp_path):
         p, a, moves = _back_plot(path, prog)
         rows = _written_rows(prog)
         assert len(rows) == len(moves), name
-        assert np.abs(p - prog.part_xyz[rows]).max() < 0.01, name
-        assert _angle_deg(a, prog.part_axis[rows]).max() < 0.01, name
+        tip, axis = prog.forward(rows)
+        assert np.abs(p - tip).max() < 0.01, name
+        assert _angle_deg(a, axis).max() < 0.01, name
         on = prog.source[rows] >= 0
         assert np.abs(p[on] - tp.xyz[prog.source[rows][on]]).max() < 0.01, name
         k = prof.kinematics
@@ -399,7 +401,7 @@ def test_a_three_axis_slice_keeps_printing_directions_in_the_clearance_cone(smal
     assert metrics["three_axis.n_printing_beyond_clearance"] == 0
     assert 1.0 < metrics["three_axis.max_printing_angle_deg"] <= clearance + 1e-6      # curved, and bounded
     prog = chain.printed.motion.program
-    assert np.allclose(prog.part_axis, [0.0, 0.0, 1.0]) and not prog.machine[:, 3:5].any()
+    assert np.allclose(prog.forward()[1], [0.0, 0.0, 1.0]) and not prog.machine[:, 3:5].any()
     text = (tmp_path / "run" / "print.gcode").read_text()
     assert "three-axis" in text[:2000] and not re.search(r"^G[01].*\b[ABC]-?\d", text, re.M)
     # (the L's flat underside needs a 90 deg turn: a 30 deg slope cannot remove it; benchmarks/bench_examples.py

@@ -171,4 +171,4 @@ def test_moves_shorter_than_the_controller_executes_are_merged():
     assert out.deposited_volume() == pytest.approx(tp.deposited_volume(), rel=1e-9)   # collinear: same material
     prog = plan_motion(out, profile, platform_z=0.0)
     src = prog.source >= 0
-    assert np.allclose(prog.part_xyz[src], out.xyz[prog.source[src]], atol=1e-9)
+    assert np.allclose(prog.forward(src)[0], out.xyz[prog.source[src]], atol=1e-9)

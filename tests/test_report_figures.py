@@ -10,6 +10,7 @@ import pytest
 
 from neuralslicer import report
 from neuralslicer.metrics import overhang_area_fraction
+from neuralslicer.motion.collision import CollisionMap
 from neuralslicer.outputs import draw_figures
 from neuralslicer.report import (_layer_frame, offscreen_rendering_available, plot_layer_toolpaths, plot_layers_3d,
                                  plot_overhang_map, plot_thickness_map, representative_layers)
@@ -160,7 +161,7 @@ def test_draw_figures_embeds_the_operator_pictures(tmp_path: Path, cap_toolpaths
         samples=samples, lpd_b=normals, layers=SimpleNamespace(meshes=cap_stack(6, 0.5, 6.0, 35.0, 4)),
         toolpaths=tp, program=SimpleNamespace(profile=SimpleNamespace(nozzle=nozzle)), stress=None, verify=None,
         strength_rounds=[],
-        field_history={}, collision_maps={"printed": (tp.xyz, np.zeros(len(tp), bool))},
+        field_history={}, collision_maps={"printed": CollisionMap.of(tp.xyz, np.zeros(len(tp), bool))},
         print_metrics={"beads": bead_summary(tp, nozzle.bead_thickness_mm)})
     figures = draw_figures(tmp_path / "figures", run, 45.0, 30.0)
     for caption in ("Overhang map (planar vs computed)", "Bead thickness", "Toolpaths of representative layers"):
@@ -220,3 +221,22 @@ def test_a_job_that_fails_in_the_helper_fails_the_export_with_its_error(tmp_path
     time.sleep(1.0)   # what the exporting process writes meanwhile: the helper takes every job
     with pytest.warns(UserWarning, match="no such layer"), pytest.raises(ValueError, match="no such layer"):
         jobs.finish()
+
+
+def test_a_collision_map_keeps_what_its_figure_draws():
+    """A print's collision map keeps every ``n // MAP_POINTS``-th clear and colliding waypoint, the counts and the
+    bounds of all waypoints: what ``plot_collision_map`` drew from the whole print."""
+    from neuralslicer.motion.collision import MAP_POINTS
+
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(3 * MAP_POINTS + 123, 3)) * [30.0, 20.0, 40.0]     # 2.99 clear a kept one
+    hit = np.zeros(len(xyz), bool)
+    hit[rng.choice(len(xyz), 300, replace=False)] = True
+    m = CollisionMap.of(xyz, hit)
+    assert m.n_waypoints == len(xyz) and m.n_hit == 300
+    assert np.array_equal(m.hit, xyz[hit])                                   # few: every colliding one
+    assert np.array_equal(m.clear, xyz[~hit][::2])                           # many: every other clear one
+    assert np.array_equal(m.bounds, [xyz.min(axis=0), xyz.max(axis=0)])
+    assert np.array_equal(CollisionMap.of_indices(xyz, np.flatnonzero(hit)).hit, m.hit)
+    empty = CollisionMap.of(np.zeros((0, 3)), np.zeros(0, bool))
+    assert empty.n_waypoints == 0 and empty.bounds.shape == (0, 3)

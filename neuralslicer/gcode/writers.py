@@ -136,7 +136,7 @@ def _layer_segments(program: MachineProgram, times: np.ndarray, first: int = 0) 
         a = max(a, first)
         if a >= b:
             continue
-        z = program.part_xyz[a:b, 2]
+        z = program.forward(slice(a, b))[0][:, 2]
         li = int(layer[a])
         info = {"number": k + 1, "count": n_layers, "z": (float(z.min()), float(z.max())),
                 "isovalue": iso[li] if 0 <= li < len(iso) else None,
@@ -417,14 +417,14 @@ def fan_on(program: MachineProgram) -> str | None:
 
 def thumbnail_png(program: MachineProgram, width: int, height: int) -> bytes:
     """A ``width`` x ``height`` PNG of the printed moves seen from the front, 30 deg above the platform: the part's
-    toolpaths (build frame, ``program.part_xyz``) shaded by height, on a transparent background."""
+    toolpaths (build frame, the tool tips of ``program.forward``) shaded by height, on a transparent background."""
     import zlib
 
     moves = np.flatnonzero(program.kind[1:] != TRAVEL) + 1                # printing moves, drawn as lines
     steps = 8
     if len(moves) * steps > THUMBNAIL_MAX_POINTS:
         moves = moves[np.linspace(0, len(moves) - 1, THUMBNAIL_MAX_POINTS // steps).astype(np.int64)]
-    a, b = program.part_xyz[moves - 1], program.part_xyz[moves]
+    a, b = program.forward(moves - 1)[0], program.forward(moves)[0]
     t = np.linspace(0.0, 1.0, steps)[None, :, None]
     pts = (a[:, None] + t * (b - a)[:, None]).reshape(-1, 3)
     rgba = np.zeros((height, width, 4), np.uint8)

@@ -29,6 +29,42 @@ from neuralslicer.types import BoolArray, FloatArray, IndexArray
 PART, PLATFORM, TRAVEL_PATH = 0, 1, 2
 
 
+#: at most this many clear and this many colliding waypoints of a print are kept for its collision map's figure
+MAP_POINTS = 40_000
+
+
+@dataclass(frozen=True)
+class CollisionMap:
+    """Where one print's head hits, as much of it as a figure draws: every ``len // MAP_POINTS``-th clear and colliding
+    waypoint (evenly along the print), the counts and the bounds of all waypoints. A few MB, where the print's
+    waypoints and flags are 25 bytes a waypoint.
+
+    clear, hit : (k, 3), (h, 3) the kept clear and colliding waypoints; n_waypoints, n_hit : the print's counts;
+    bounds : (2, 3) the lowest and highest coordinates of all waypoints ((0, 3) for a print without any).
+    """
+
+    clear: FloatArray
+    hit: FloatArray
+    n_waypoints: int
+    n_hit: int
+    bounds: FloatArray
+
+    @classmethod
+    def of(cls, xyz: FloatArray, hit: BoolArray, max_points: int = MAP_POINTS) -> "CollisionMap":
+        """The map of waypoints ``xyz`` (n, 3) of which ``hit`` (n,) collide."""
+        ok, bad = np.flatnonzero(~hit), np.flatnonzero(hit)
+        ok, bad = ok[:: max(1, len(ok) // max_points)], bad[:: max(1, len(bad) // max_points)]
+        bounds = np.stack([xyz.min(axis=0), xyz.max(axis=0)]) if len(xyz) else np.zeros((0, 3))
+        return cls(xyz[ok], xyz[bad], int(len(hit)), int(hit.sum()), bounds)
+
+    @classmethod
+    def of_indices(cls, xyz: FloatArray, indices: IndexArray) -> "CollisionMap":
+        """The map of waypoints ``xyz`` (n, 3) of which those at ``indices`` collide."""
+        hit = np.zeros(len(xyz), bool)
+        hit[np.asarray(indices, np.int64)] = True
+        return cls.of(xyz, hit)
+
+
 @dataclass
 class CollisionReport:
     """Collisions found: waypoint indices, a colliding location each, and the kind (PART/PLATFORM at the

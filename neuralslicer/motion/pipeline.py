@@ -109,10 +109,16 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     del material   # the beads' grid (~100 bytes a waypoint): the program and its timing need the room
     release_freed_memory()
     t3 = time.perf_counter()
+    on = tp.path >= 0
+    # the count of printing waypoints outside the solid, before the program (its arrays would come on top of them)
+    outside = None if solid_H is None else values_above(solid_H, tp.xyz[on & tp.extrude], OUTSIDE_TOL)
+    release_freed_memory()
+    t_plan = time.perf_counter()
     program = plan_motion(tp, profile, platform_z=platform_z)
+    release_freed_memory()     # the planning's temporaries: the features' and the time estimate's arrays come next
     program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
     program.attrs["features"] = feature_runs(program, tp.path, tp.attrs.get("path_kinds", ""))
-    release_freed_memory()     # the planning's temporaries: the time estimate's arrays come on top of the program
+    release_freed_memory()
     t4 = time.perf_counter()
     metrics = program_metrics(program)
     if vertical is not None:
@@ -123,14 +129,11 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
                    n_waypoints=len(tp), n_layers=tp.n_layers, n_paths=int(tp.attrs.get("n_paths", 0)))
     metrics.update(report.summary())
     metrics.update({k: v for k, v in program.attrs.items() if k not in ("platform_z", "isovalues", "features")})
-    on = tp.path >= 0
     metrics["thickness_mm"] = {"min": float(tp.thickness[on].min()), "mean": float(tp.thickness[on].mean()),
                                "max": float(tp.thickness[on].max())}
-    if solid_H is not None:
-        release_freed_memory()     # the time estimate's arrays: the count below makes its own
-        outside, highest = values_above(solid_H, tp.xyz[on & tp.extrude], OUTSIDE_TOL)
-        metrics["n_waypoints_outside_solid"], metrics["max_H_at_waypoints"] = outside, highest
-    metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t3}
+    if outside is not None:
+        metrics["n_waypoints_outside_solid"], metrics["max_H_at_waypoints"] = outside
+    metrics["timings_s"] = {"toolpaths": toolpaths_s, "collisions": t2 - t1, "tilt": t3 - t2, "motion": t4 - t_plan}
     tp.attrs["collision_waypoints"] = [int(i) for i in report.indices[:1000]]
     release_freed_memory()         # the store's write of the toolpaths and the program comes next
     return tp, program, metrics, report

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from collections.abc import Iterable
 from typing import ClassVar, Self
 
 import numpy as np
@@ -9,20 +10,20 @@ import numpy as np
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.errors import PlanError
 from neuralslicer.motion.kinematics import (ROWS_PER_BLOCK, forward_kinematics, inverse_kinematics, machine_position,
-                                            tool_axis, workpiece_position)
+                                            workpiece_position)
 from neuralslicer.motion.profile import Feeds, MachineProfile
 from neuralslicer.motion.timing import program_time
 from neuralslicer.toolpath.types import Toolpaths, segment_lengths
 from neuralslicer.types import FloatArray, IndexArray
 
-PROGRAM_SCHEMA_VERSION = 1
+PROGRAM_SCHEMA_VERSION = 2   # 2: no stored tool tips and axes (part_xyz, part_axis): the forward kinematics of machine
 #: move kinds
 TRAVEL, PRINT, RETRACT = 0, 1, 2
 
 
 @dataclass
 class ProgramMoves:
-    """The moves of a machine program as a preview draws them (in 65 of a :class:`MachineProgram`'s 121 bytes a
+    """The moves of a machine program as a preview draws them (in 65 of a :class:`MachineProgram`'s 73 bytes a
     move): its ``machine``, ``time_s``, ``kind``, ``source`` and ``layer`` arrays, part offset, profile and attributes.
     The export reads a stored program back as these."""
 
@@ -59,10 +60,21 @@ class ProgramMoves:
         a = self.profile.axes
         return (a.x, a.y, a.z, a.tilt, a.rotate, a.extruder)
 
-    def forward(self) -> tuple[FloatArray, FloatArray]:
-        """Forward kinematics of all moves: tool tip and tool axis in the build frame."""
-        return forward_kinematics(self.machine[:, :3], self.machine[:, 3], self.machine[:, 4],
-                                  self.profile.kinematics, self.part_offset)
+    def forward(self, rows: slice | IndexArray = slice(None)) -> tuple[FloatArray, FloatArray]:
+        """Forward kinematics of the moves ``rows`` (default: all): tool tip and tool axis (each (k, 3)) in the build
+        frame, where each move is meant to reach (the program stores machine coordinates only)."""
+        m = self.machine[rows]
+        return forward_kinematics(m[:, :3], m[:, 3], m[:, 4], self.profile.kinematics, self.part_offset)
+
+    def tip_segment_lengths(self) -> FloatArray:
+        """Length (n,) of each move's tool-tip path in the build frame, the chord from the move before (0 for the
+        first), in blocks of rows: a block's tips, not the whole program's."""
+        n = len(self)
+        d = np.zeros(n)
+        for a in range(1, n, ROWS_PER_BLOCK):
+            z = min(a + ROWS_PER_BLOCK, n)
+            d[a:z] = segment_lengths(self.forward(slice(a - 1, z))[0])[1:]
+        return d
 
 
 @dataclass(kw_only=True)
@@ -75,16 +87,13 @@ class MachineProgram(ProgramMoves):
     time_s : (n,) planned duration of each move; kind : (n,) int8 TRAVEL/PRINT/RETRACT (RETRACT:
     extruder-only moves, retraction < 0 or prime > 0); source : (n,) int64 toolpath waypoint index
     reached by the move, -1 for inserted moves (rotary splitting, retract/prime, approach);
-    layer : (n,) int64; part_xyz / part_axis : (n, 3) the tool tip and tool axis in the build frame
-    the move is meant to reach (forward kinematics of ``machine`` reproduces them).
+    layer : (n,) int64. The tool tip and tool axis in the build frame that each move reaches are the forward
+    kinematics of ``machine`` (:meth:`forward`), computed where needed rather than stored.
     """
 
-    ARRAYS: ClassVar[tuple[str, ...]] = ("machine", "extruder", "time_s", "kind", "source", "layer", "part_xyz",
-                                         "part_axis")
+    ARRAYS: ClassVar[tuple[str, ...]] = ("machine", "extruder", "time_s", "kind", "source", "layer")
 
     extruder: FloatArray
-    part_xyz: FloatArray
-    part_axis: FloatArray
 
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
         """Store-able form: (arrays, JSON attrs incl. the profile) for one zarr group."""
@@ -260,18 +269,19 @@ def _rotary_steps(frm: FloatArray, targets: list[FloatArray], max_step_deg: floa
 def safe_height(program: MachineProgram) -> float:
     """Machine Z at which the tool tip clears the part at any rotary angles: above the sphere around the pivot
     holding it (table-table), else above the part's top (a head's tilt lifts the tip, a table's rotation keeps z)."""
-    return _safe_height(program.part_xyz, program.part_offset, program.profile)
+    tips = (program.forward(slice(a, a + ROWS_PER_BLOCK))[0] for a in range(0, len(program), ROWS_PER_BLOCK))
+    return _safe_height(tips, program.part_offset, program.profile)
 
 
-def _safe_height(part_xyz: FloatArray, part_offset: FloatArray, profile: MachineProfile) -> float:
-    """``safe_height`` of moves reaching ``part_xyz`` (n, 3) (blocks of rows)."""
+def _safe_height(tips: Iterable[FloatArray], part_offset: FloatArray, profile: MachineProfile) -> float:
+    """``safe_height`` of moves reaching the tool tips ``tips`` (blocks of (k, 3) rows)."""
     kin = profile.kinematics
     if kin.layout != "table-table":
-        top = float(part_xyz[:, 2].max(initial=0.0)) + float(part_offset[2])
+        top = max((float(p[:, 2].max()) for p in tips if len(p)), default=0.0)
+        top = max(top, 0.0) + float(part_offset[2])
         lift = float(kin.c_offset[2])                 # the bed's (or rotary table's) top in machine Z
         return top + lift + profile.gcode.safe_clearance_mm
-    reach = max((float(np.linalg.norm(part_xyz[a:a + ROWS_PER_BLOCK] + part_offset, axis=1).max())
-                 for a in range(0, len(part_xyz), ROWS_PER_BLOCK)), default=0.0)
+    reach = max((float(np.linalg.norm(p + part_offset, axis=1).max()) for p in tips if len(p)), default=0.0)
     return float(kin.pivot[2] + np.linalg.norm(kin.c_offset) + reach + profile.gcode.safe_clearance_mm)
 
 
@@ -309,7 +319,7 @@ def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None, c
         for name in names if consume else ():
             setattr(program, name, getattr(program, name)[:0].copy())
 
-    done("machine", "part_xyz", "part_axis")
+    done("machine")
     # travel times of the inserted travels (each from the pose before; the program's own moves keep theirs)
     t_start = _travel_times(machine[:n_s + 1], f)
     t_end = _travel_times(machine[len(machine) - n_e - 1:], f)[1:]
@@ -331,9 +341,8 @@ def _with_safe_start_end(program: MachineProgram, z_safe: float | None = None, c
     source = np.concatenate([np.full(n_s, -1, np.int64), program.source[:1], [-1], program.source[1:], [-1],
                              np.full(n_e, -1, np.int64)]).astype(np.int64, copy=False)
     done("source")
-    p, a = forward_kinematics(machine[:, :3], machine[:, 3], machine[:, 4], kin, program.part_offset)
     return MachineProgram(machine=machine, extruder=np.cumsum(de, out=de), time_s=time_s, kind=kind, source=source,
-                          layer=layer, part_xyz=p, part_axis=a, part_offset=program.part_offset, profile=prof,
+                          layer=layer, part_offset=program.part_offset, profile=prof,
                           attrs={**program.attrs, "safe_z": z_safe})
 
 
@@ -462,11 +471,9 @@ def unwind_c(program: MachineProgram, z_safe: float) -> tuple[MachineProgram, in
     for key, arr in cols.items():
         pieces[key].append(arr[prev:])
     cat = {k: np.concatenate(v) for k, v in pieces.items()}
-    mach = cat["machine"]
-    xyz, axis = forward_kinematics(mach[:, :3], mach[:, 3], mach[:, 4], kin, program.part_offset)
-    out = replace(program, machine=mach, extruder=np.cumsum(cat["de"]), time_s=cat["time_s"],
+    out = replace(program, machine=cat["machine"], extruder=np.cumsum(cat["de"]), time_s=cat["time_s"],
                   kind=cat["kind"].astype(np.int8), source=cat["source"], layer=cat["layer"],
-                  part_xyz=xyz, part_axis=axis, attrs=dict(program.attrs))
+                  attrs=dict(program.attrs))
     return out, int(len(at))
 
 
@@ -518,17 +525,12 @@ def plan_motion(tp: Toolpaths, profile: MachineProfile, platform_z: float | None
     machine = np.empty((n, 5))
     machine_position(e["xyz"], e["b"], e["c"], kin, offset, out=machine[:, :3])
     machine[:, 3], machine[:, 4] = e.pop("b"), e.pop("c")
-    z_safe = _safe_height(e["xyz"], offset, profile)
-    if profile.gcode.safe_start_end and n:
-        # the safe start and end recompute the part poses of every move: none needed before
-        part_xyz, part_axis = np.zeros((0, 3)), np.zeros((0, 3))
-        e.pop("xyz")
-    else:
-        part_xyz, part_axis = e.pop("xyz"), tool_axis(machine[:, 3], machine[:, 4], kin)
+    xyz = e.pop("xyz")
+    z_safe = _safe_height((xyz[a:a + ROWS_PER_BLOCK] for a in range(0, n, ROWS_PER_BLOCK)), offset, profile)
+    del xyz
     program = MachineProgram(machine=machine, extruder=np.cumsum(e.pop("de")), time_s=e.pop("dt"), kind=e.pop("kind"),
                              source=e.pop("source").astype(np.int64, copy=False),
-                             layer=e.pop("layer").astype(np.int64, copy=False),
-                             part_xyz=part_xyz, part_axis=part_axis, part_offset=offset, profile=profile)
+                             layer=e.pop("layer").astype(np.int64, copy=False), part_offset=offset, profile=profile)
     del machine
     program, n_unwinds = unwind_c(program, z_safe)
     if profile.gcode.safe_start_end and n:
@@ -580,7 +582,7 @@ def program_metrics(program: MachineProgram, times: tuple[FloatArray, FloatArray
     """Totals of a program: time, path length, waypoints, material, filament (``times``: its
     ``timing.schedule`` when already computed)."""
     timed = program_time(program, times)     # first: its schedule's arrays are the largest the metrics need
-    seg = segment_lengths(program.part_xyz)[1:]
+    seg = program.tip_segment_lengths()[1:]
     kind = program.kind[1:]
     de = np.diff(program.extruder)
     area = filament_area(program.profile)
