@@ -67,7 +67,7 @@ def tree_memory(root: psutil.Process) -> tuple[int, int, dict[str, float]]:
     for proc in [root, *root.children(recursive=True)]:
         try:
             info = proc.memory_full_info()
-            role = "command" if proc.pid == root.pid else _role(proc)
+            role = "command" if proc.pid == root.pid else _role(proc, root)
         except (psutil.Error, OSError):
             continue
         rss, pss = rss + info.rss, pss + getattr(info, "pss", info.rss)
@@ -75,12 +75,13 @@ def tree_memory(root: psutil.Process) -> tuple[int, int, dict[str, float]]:
     return rss, pss, parts
 
 
-def _role(proc: psutil.Process) -> str:
-    """What a child of the command is: its local API server, the export's forked helper, or another process."""
-    cmdline = " ".join(proc.cmdline())
-    if "api_server" in cmdline or "uvicorn" in cmdline:
+def _role(proc: psutil.Process, root: psutil.Process) -> str:
+    """What a child of the command is: its local API server, a helper it forked (the command's own command line: the
+    export's, the layers'), or another process (a cage's fTetWild worker)."""
+    cmdline = proc.cmdline()
+    if "api_server" in " ".join(cmdline) or "uvicorn" in " ".join(cmdline):
         return "api_server"
-    return "helper" if proc.ppid() != 0 else "other"
+    return "helper" if cmdline == root.cmdline() else "other"
 
 
 class Watch:

@@ -160,11 +160,10 @@ def n_platform_collisions(ref: ArtifactRef) -> int:
     return int(attrs_of(ref)["metrics"].get("n_platform_collisions", 0))
 
 
-def read_collision_map(ref: ArtifactRef, xyz: np.ndarray | None = None) -> CollisionMap:
-    """Where the head of a stored print hits, as its figure draws it (``xyz``: the print's waypoints (n,3) when
-    already read; else they are read and dropped again)."""
-    arrays, _ = read(ref, ["collisions/indices"] if xyz is not None else ["toolpaths/xyz", "collisions/indices"])
-    return CollisionMap.of_indices(arrays["toolpaths/xyz"] if xyz is None else xyz, arrays["collisions/indices"])
+def read_collision_map(ref: ArtifactRef) -> CollisionMap:
+    """Where the head of a stored print hits, as its figure draws it (its waypoints read and dropped again)."""
+    arrays, _ = read(ref, ["toolpaths/xyz", "collisions/indices"])
+    return CollisionMap.of_indices(arrays["toolpaths/xyz"], arrays["collisions/indices"])
 
 
 def read_collided(ref: ArtifactRef) -> np.ndarray:
@@ -237,12 +236,13 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
              if attempts and attempts[0][2] != motion else {})
     tp, program, print_metrics = read_motion(motion, ProgramMoves if program_ref is not None else MachineProgram)
     gcode = read_program(program_ref) if program_ref is not None else None
-    maps = {**first, "printed": read_collision_map(motion, tp.xyz)}
+    collided = read_collided(motion)
+    maps = {**first, "printed": CollisionMap.of_indices(tp.xyz, collided)}   # the waypoints read above
     return RunResults(
         model=model.model, surface=surface_mesh, surface_attrs=surface_attrs, samples=read_samples(samples), cage=c,
         cage_attrs=attrs_of(cage), field=read_field(c, field), field_history=read_field_history(field),
         layers=read_layers(layers), toolpaths=tp, program=program, print_metrics=print_metrics,
-        collision_maps=maps, collided=read_collided(motion), wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
+        collision_maps=maps, collided=collided, wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
         stress=read_stress(stress) if stress is not None else None,
         verify=read(verify) if verify is not None else None,
         attempts=[Attempt(label, read_field(c, f), attrs_of(p)["metrics"]) for label, f, p in attempts],

@@ -277,8 +277,7 @@ def _safe_height(tips: Iterable[FloatArray], part_offset: FloatArray, profile: M
     """``safe_height`` of moves reaching the tool tips ``tips`` (blocks of (k, 3) rows)."""
     kin = profile.kinematics
     if kin.layout != "table-table":
-        top = max((float(p[:, 2].max()) for p in tips if len(p)), default=0.0)
-        top = max(top, 0.0) + float(part_offset[2])
+        top = max((float(p[:, 2].max(initial=0.0)) for p in tips), default=0.0) + float(part_offset[2])
         lift = float(kin.c_offset[2])                 # the bed's (or rotary table's) top in machine Z
         return top + lift + profile.gcode.safe_clearance_mm
     reach = max((float(np.linalg.norm(p + part_offset, axis=1).max()) for p in tips if len(p)), default=0.0)
