@@ -159,16 +159,17 @@ def cmd_compare(args: argparse.Namespace) -> int:
     exit 1 when they differ beyond the tolerances, 0 when not."""
     import json
 
-    from neuralslicer.compare import comparison_doc, compare_runs, print_comparison
+    from neuralslicer.compare import comparison_doc, compare_runs, headline_figures, print_comparison
     from neuralslicer.fileio import to_json
 
     ignore = tuple(args.ignore or ())
     diffs = compare_runs(args.run_a, args.run_b, rtol=args.rtol, atol=args.atol, include_all=args.all, ignore=ignore)
-    doc = comparison_doc(diffs, args.run_a, args.run_b, args.rtol, args.atol, ignore)
+    figures = headline_figures(args.run_a, args.run_b, rtol=args.rtol, atol=args.atol)
+    doc = comparison_doc(diffs, args.run_a, args.run_b, args.rtol, args.atol, ignore, figures)
     if args.json:
         print(json.dumps(to_json(doc), indent=2, allow_nan=False))
     else:
-        print_comparison(diffs, args.run_a, args.run_b)
+        print_comparison(diffs, args.run_a, args.run_b, figures)
     return 1 if doc["differ"] else 0
 
 

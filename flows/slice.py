@@ -202,7 +202,7 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
                         extra={**(provenance_extra or {}), "store": store,
                                "cage_sha256": ArtifactStore(store, create=False).attrs(c.cage.path).get("sha256")},
-                        device_used=optimised_on(store, [f for _, f, _ in c.attempts] + [p.field]))
+                        device_used=optimised_on(store, [a.field for a in c.attempts] + [p.field]))
     provenance_digest = record_provenance(out_dir, store, name, record)
     add_to_metrics(out_dir, record)
     refs = {"model": c.model, "surface": c.surface, "samples": c.samples, "cage": c.cage, "fea": c.fea,

@@ -15,6 +15,7 @@ from neuralslicer.flows.branch import Branch  # noqa: E402
 from neuralslicer.flows.settings import artifact_key  # noqa: E402
 from neuralslicer.metrics import field_agreement  # noqa: E402
 from neuralslicer.report import plot_learning_curves  # noqa: E402
+from neuralslicer.run_metrics import RunMetrics  # noqa: E402
 from neuralslicer.storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
 from neuralslicer.tasks.codec import read_cage, read_field  # noqa: E402
 
@@ -46,23 +47,19 @@ def table_rows(study: dict[str, Any]) -> list[dict[str, Any]]:
         for term in LOSS_TERMS:
             if term in b["final_loss"] and (term == "total" or b["final_loss"][term]):
                 row[f"L_{term}"] = b["final_loss"][term]
-        sat = b.get("satisfaction", {})
+        sat, figures = b.get("satisfaction", {}), RunMetrics.of(m)
         row["SF supported"] = sat.get("sf_supported_fraction")
-        if "sr_satisfied_fraction" in sat or "sr.satisfied_fraction" in m:
-            row["SR satisfied"] = sat.get("sr_satisfied_fraction", m.get("sr.satisfied_fraction"))
-        row["overhang"] = m.get("sf.overhang_area_fraction")
-        row["overhang planar"] = m.get("sf.overhang_area_fraction_planar")
+        if "sr_satisfied_fraction" in sat or figures.sr_satisfied is not None:
+            row[RunMetrics.label("sr_satisfied")] = sat.get("sr_satisfied_fraction", figures.sr_satisfied)
+        shown = ["overhang", "overhang_planar"]
         if study.get("kind") in ("methods", "ablation"):
-            row["overhang held out"] = m.get("sf.heldout.overhang_area_fraction")
-            row["overhang of the layers"] = m.get("sf.heldout.overhang_area_fraction_layers")
-            row["collisions"] = m.get("n_collisions")
-            if "fea.max_strain" in m:
-                row["max strain"] = m.get("fea.max_strain")
-                row["strain p99"] = m.get("fea.max_strain_p99")
-                row["max strain, planar + zig-zag"] = m.get("fea.planar_zigzag.max_strain")
-                row["filaments along tau_max"] = m.get("fea.aligned_fraction")
+            shown += ["overhang_held_out", "overhang_layers", "n_collisions"]
+            if figures.max_strain is not None:
+                shown += ["max_strain", "strain_p99", "max_strain_planar_zigzag", "aligned_fraction"]
+        row.update({RunMetrics.label(name): getattr(figures, name) for name in shown})
+        if study.get("kind") in ("methods", "ablation"):
             row["field s"] = field.get("optimise_wall_s")
-        row["layers"] = m.get("n_layers")
+        row[RunMetrics.label("n_layers")] = figures.n_layers
         row["wall s"] = b.get("wall_s")
         row["worker"] = b["worker"].get("dask_worker") or f"pid {b['worker']['pid']}"
         rows.append(row)

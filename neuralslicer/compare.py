@@ -11,6 +11,7 @@ from pydantic import BaseModel, Field
 
 from neuralslicer.errors import InputError
 from neuralslicer.provenance import flatten
+from neuralslicer.run_metrics import KEYS, RunMetrics
 
 # entries that differ between any two runs and say nothing about the result
 VOLATILE = ("recorded_at", "command", "digest", "provenance.device.torch_threads")
@@ -26,7 +27,7 @@ DEFAULT_ATOL = 1e-9
 class Difference(BaseModel):
     """One entry of a comparison."""
 
-    section: str = Field(description="'parameters' or 'metrics'")
+    section: str = Field(description="'parameters', 'metrics' or 'figures' (the headline figures, RunMetrics)")
     key: str
     a: Any = None
     b: Any = None
@@ -96,24 +97,43 @@ def compare_runs(run_a: str | Path, run_b: str | Path, rtol: float = 0.0, includ
         for key in sorted(set(a) | set(b)):
             if any(key == v or key.endswith("." + v) for v in VOLATILE) or ignored(key, ignore):
                 continue
-            va, vb = a.get(key), b.get(key)
-            equal = key in a and key in b and values_equal(va, vb, rtol, atol)
-            if equal and not include_all:
-                continue
-            delta = float(vb) - float(va) if _is_number(va) and _is_number(vb) else None
-            only_in = None if key in a and key in b else ("a" if key in a else "b")
-            out.append(Difference(section=section, key=key, a=va, b=vb, equal=equal, delta=delta, only_in=only_in))
+            d = _difference(section, key, a, b, rtol, atol)
+            if include_all or not d.equal:
+                out.append(d)
     return out
 
 
+def _difference(section: str, key: str, a: dict[str, Any], b: dict[str, Any], rtol: float, atol: float) -> Difference:
+    """The entry ``key`` of two runs' mappings, compared."""
+    va, vb = a.get(key), b.get(key)
+    equal = key in a and key in b and values_equal(va, vb, rtol, atol)
+    delta = float(vb) - float(va) if _is_number(va) and _is_number(vb) else None
+    only_in = None if key in a and key in b else ("a" if key in a else "b")
+    return Difference(section=section, key=key, a=va, b=vb, equal=equal, delta=delta, only_in=only_in)
+
+
+def headline_figures(run_a: str | Path, run_b: str | Path, rtol: float = 0.0, atol: float = 0.0) -> list[Difference]:
+    """The headline figures (:class:`RunMetrics`) that either run has, equal or not, in the schema's order: what a
+    comparison shows first. They are metrics too, and count there."""
+    ma, mb = run_entries(run_a)[1], run_entries(run_b)[1]
+    fa, fb = ({KEYS[k]: v for k, v in RunMetrics.of(m).present().items()} for m in (ma, mb))
+    return [_difference("figures", key, fa, fb, rtol, atol) for key in KEYS.values() if key in fa or key in fb]
+
+
 def comparison_doc(diffs: list[Difference], run_a: str | Path, run_b: str | Path, rtol: float, atol: float,
-                   ignore: tuple[str, ...] = ()) -> dict[str, Any]:
+                   ignore: tuple[str, ...] = (), figures: list[Difference] | None = None) -> dict[str, Any]:
     """The JSON document of ``neuralslicer compare --json`` (schema ``COMPARE_SCHEMA``, docs/outputs.md)."""
     n = {s: sum(not d.equal and d.section == s for d in diffs) for s in ("parameters", "metrics")}
     return {"schema": COMPARE_SCHEMA, "run_a": str(run_a), "run_b": str(run_b),
             "rtol": rtol, "atol": atol, "ignore": list(ignore),
             "differ": any(n.values()), "n_differences": sum(n.values()), "n_by_section": n,
+            "figures": [{**d.model_dump(), "label": _label(d.key)} for d in figures or []],
             "differences": [d.model_dump() for d in diffs]}
+
+
+def _label(key: str) -> str:
+    """The table label of a headline figure's metrics key."""
+    return RunMetrics.label(next(name for name, k in KEYS.items() if k == key))
 
 
 def _cell(value: Any) -> str:
@@ -126,23 +146,26 @@ def _cell(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def print_comparison(diffs: list[Difference], run_a: str | Path, run_b: str | Path) -> None:
-    """Print the comparison as a rich table per section."""
+def print_comparison(diffs: list[Difference], run_a: str | Path, run_b: str | Path,
+                     figures: list[Difference] | None = None) -> None:
+    """Print the comparison as a rich table per section, the headline figures first (both values, equal or not)."""
     from rich.table import Table
 
     from neuralslicer.console import table_console
 
     console = table_console()
-    for section in ("parameters", "metrics"):
-        rows = [d for d in diffs if d.section == section]
+    for section, rows in (("figures", figures or []), *((s, [d for d in diffs if d.section == s])
+                                                        for s in ("parameters", "metrics"))):
+        if section == "figures" and not rows:
+            continue
         table = Table(title=f"{section}: {run_a} vs {run_b}")
-        table.add_column("key")
+        table.add_column("figure" if section == "figures" else "key")
         table.add_column("A")
         table.add_column("B")
         table.add_column("B - A")
         for d in rows:
-            style = "" if d.equal else "yellow"
-            table.add_row(f"[{style}]{d.key}[/{style}]" if style else d.key, _cell(d.a), _cell(d.b),
+            name = f"{_label(d.key)} ({d.key})" if section == "figures" else d.key
+            table.add_row(name if d.equal else f"[yellow]{name}[/yellow]", _cell(d.a), _cell(d.b),
                           "" if d.delta is None else f"{d.delta:+.4g}")
         console.print(table)
     n = sum(not d.equal for d in diffs)

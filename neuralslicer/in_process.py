@@ -20,8 +20,8 @@ from neuralslicer.fea import FEAResult, run_fea, stress_samples
 from neuralslicer.fea.samples import StressSamples, stress_field
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.fea.verify import printed_fea_record, verify_field, verify_print
-from neuralslicer.field_step import (Record, blend_record, field_of, history_of, optimised_record, s3_oneshot_record,
-                                     s3_record)
+from neuralslicer.field_step import (Progress, Record, blend_record, field_of, history_of, optimised_record,
+                                     s3_oneshot_record, s3_record)
 from neuralslicer.gcode.writers import gcode_bytes
 from neuralslicer.layers import LayerConfig, Layers, slice_layers
 from neuralslicer.model.solid import Solid, implicit_solid
@@ -68,11 +68,12 @@ class Motion:
 @dataclass
 class InProcessSteps:
     """The pipeline's steps as plain calls of the core; ``wall_s`` collects each step's wall time (s), summed over
-    its calls."""
+    its calls; ``progress`` (step, info) is called after every step of a neural field's optimisation."""
 
     s3: Any = None
     s3_oneshot: Any = None
     wall_s: dict[str, float] = field(default_factory=dict)
+    progress: Progress | None = None
 
     def _timed(self, step: str, make: Callable[[], T]) -> T:
         """Run one step and add its wall time."""
@@ -122,7 +123,7 @@ class InProcessSteps:
         if request.method == "s3_oneshot":
             return s3_oneshot_record(cage, solid, inputs.samples, inputs.stress, objectives, self.s3_oneshot)
         return optimised_record(cage, inputs.samples, inputs.stress, objectives, request.neural, solid,
-                                **self._starts(request, inputs, earlier))
+                                progress=self.progress, **self._starts(request, inputs, earlier))
 
     @staticmethod
     def _starts(request: FieldRequest, inputs: FieldInputs, earlier: Sequence[Printed]) -> dict[str, Any]:
@@ -196,18 +197,19 @@ def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN
 
     cage, motion = chain.cage, chain.printed.motion
     maps = {"printed": _collision_map(motion)}
-    if chain.attempts and chain.attempts[0][2] is not motion:
-        maps = {f"first print ({chain.attempts[0][0]})": _collision_map(chain.attempts[0][2]), **maps}
-    rounds = [StrengthRound(label, int(m.metrics.get("n_collisions", 0)), printed[1],
-                            {k.split("/", 1)[1]: v for k, v in printed[0].items() if k.startswith("turn/")})
-              for label, _, m, printed in chain.rounds]
+    if chain.attempts and chain.attempts[0].motion is not motion:
+        first = chain.attempts[0]
+        maps = {f"first print ({first.label})": _collision_map(first.motion), **maps}
+    rounds = [StrengthRound(r.label, int(r.motion.metrics.get("n_collisions", 0)), r.printed_fea[1],
+                            {k.split("/", 1)[1]: v for k, v in r.printed_fea[0].items() if k.startswith("turn/")})
+              for r in chain.rounds]
     return RunResults(
         model=name, surface=chain.surface[0], surface_attrs=chain.surface[1], samples=chain.samples, cage=cage,
         cage_attrs={**cage.to_arrays()[1], **cage.summary()}, field=field_of(cage, chain.printed.field), field_history=history_of(chain.printed.field),
         layers=chain.printed.layers, toolpaths=motion.toolpaths, program=motion.program, print_metrics=motion.metrics,
         collision_maps=maps, collided=np.asarray(motion.collisions.indices, np.int64), wall_s=dict(wall_s),
         stress=chain.stress, verify=chain.verify,
-        attempts=[Attempt(label, field_of(cage, f), m.metrics) for label, f, m in chain.attempts],
+        attempts=[Attempt(a.label, field_of(cage, a.field), a.motion.metrics) for a in chain.attempts],
         strength_rounds=rounds, gcode=chain.program)
 
 
@@ -217,10 +219,12 @@ def _collision_map(motion: Motion) -> CollisionMap:
 
 
 def slice_model(spec: ModelSpec, config: SliceConfig, out_dir: str | Path | None = None,
-                user_field: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Chain, dict[str, Any] | None]:
+                user_field: tuple[np.ndarray, np.ndarray] | None = None,
+                progress: Progress | None = None) -> tuple[Chain, dict[str, Any] | None]:
     """Slice one model in this process: the chain's outputs and, with ``out_dir``, the output contract written there
-    (its metrics returned). ``user_field``: (points (p,3), values (p,)) for the ``user`` initial guess."""
-    steps = InProcessSteps(config.s3, config.s3_oneshot)
+    (its metrics returned). ``user_field``: (points (p,3), values (p,)) for the ``user`` initial guess; ``progress``:
+    called with (step, info) after each step of a neural field's optimisation."""
+    steps = InProcessSteps(config.s3, config.s3_oneshot, progress=progress)
     chain = run_chain(steps, spec, config, user_field)
     if out_dir is None:
         return chain, None

@@ -95,10 +95,29 @@ class Steps(Protocol[H]):
         """A warning for the run's log."""
 
 
+@dataclass(frozen=True)
+class TriedPrint(Generic[H]):
+    """One field the collision policy printed on the way to the kept print: its request's label, field and motion."""
+
+    label: str
+    field: H
+    motion: H
+
+
+@dataclass(frozen=True)
+class RoundPrint(Generic[H]):
+    """One strength round: its label, the field and motion it printed, and the FEA of that print."""
+
+    label: str
+    field: H
+    motion: H
+    printed_fea: H
+
+
 @dataclass
 class Chain(Generic[H]):
-    """Every step's output of one slice: the print kept, every attempt as (label, field, motion) and every strength
-    round as (label, field, motion, FEA of that print)."""
+    """Every step's output of one slice: the print kept, every field tried (when there was more than one) and every
+    strength round."""
 
     model: H
     surface: H
@@ -109,8 +128,8 @@ class Chain(Generic[H]):
     printed: Printed[H]
     program: H
     verify: H | None = None
-    attempts: list[tuple[str, H, H]] = field(default_factory=list)
-    rounds: list[tuple[str, H, H, H]] = field(default_factory=list)
+    attempts: list[TriedPrint[H]] = field(default_factory=list)
+    rounds: list[RoundPrint[H]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -159,31 +178,30 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
                       fea if toolpath.infill == "stress" else None)
     outputs, attempts, kept = run_policy(CollisionPolicy.for_config(config, neural, objectives), printer.attempt)
     printed, request = outputs[kept], attempts[kept].request
-    rounds: list[tuple[str, H, H, H]] = []
+    rounds: list[RoundPrint[H]] = []
     if config.sr_rounds > 1 and "sr" in request.objectives and config.method == "neural":
         printed, rounds = strength_rounds(printer, fea, printed, request, config.sr_rounds)
     verify = None
     if config.verify:
         verify = steps.verify(model, fea, cage, printed.field,
                               None if config.verify_tangents == "ideal" else printed.motion, config.layers, toolpath)
-    listed = [(a.request.label, o.field, o.motion) for a, o in zip(attempts, outputs)]
+    listed = [TriedPrint(a.request.label, o.field, o.motion) for a, o in zip(attempts, outputs)]
     return Chain(model, surface, samples, cage, fea, stress, printed, steps.program(printed.motion), verify,
                  listed if len(listed) > 1 else [], rounds)
 
 
 def strength_rounds(printer: Printer[H], fea: H, current: Printed[H], request: FieldRequest, n_rounds: int
-                    ) -> tuple[Printed[H], list[tuple[str, H, H, H]]]:
+                    ) -> tuple[Printed[H], list[RoundPrint[H]]]:
     """Strength rounds (``sr_rounds``, beyond the paper): the FEA of the part as printed (its filaments, its layers)
     gives the stress the print really carries; T and tau_max are sampled from it and the field re-optimised from
     its weights, then layered and printed with the infill following that stress, ``n_rounds`` - 1 times. A round
-    whose print collides ends the rounds and the print before it is kept. Returns the final print and every round
-    as (label, field, motion, the FEA of that print)."""
+    whose print collides ends the rounds and the print before it is kept. Returns the final print and every round."""
     s, inputs = printer.steps, printer.inputs
-    rounds: list[tuple[str, H, H, H]] = []
+    rounds: list[RoundPrint[H]] = []
     for r in range(1, n_rounds + 1):
         printed = s.printed_fea(inputs.model, fea, inputs.cage, current.field, current.motion)
-        rounds.append((f"round {r}" + (" (isotropic tau_max, the paper)" if r == 1 else ""), current.field,
-                       current.motion, printed))
+        rounds.append(RoundPrint(f"round {r}" + (" (isotropic tau_max, the paper)" if r == 1 else ""),
+                                    current.field, current.motion, printed))
         if r == n_rounds:
             break
         stress = s.stress_samples(inputs.model, printed)

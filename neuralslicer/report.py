@@ -23,6 +23,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from neuralslicer.fileio import atomic_path  # noqa: E402
 from neuralslicer.metrics import overhang_area_fraction, support_angles  # noqa: E402
+from neuralslicer.run_metrics import RunMetrics  # noqa: E402
 from neuralslicer.toolpath.types import Toolpaths  # noqa: E402
 
 if TYPE_CHECKING:
@@ -199,30 +200,29 @@ def plot_collision_map(path: Path, prints: dict[str, CollisionMap]) -> None:
 
 
 def summary_rows(metrics: dict) -> list[tuple[str, str]]:
-    """What a user looks for first, from the metrics a run has: layers, time, material, collisions, overhang and
-    strain against planar layers."""
-    m, rows = metrics, []
+    """What a user looks for first, from the metrics a run has (:class:`RunMetrics`): layers, time, material,
+    collisions, overhang and strain against planar layers."""
+    m, rows = RunMetrics.of(metrics), []
 
     def pct(x: float) -> str:
         return f"{100 * x:.2f} %"
 
-    if "n_layers" in m:
-        rows.append(("layers", f"{m['n_layers']}"))
-    if "estimated_print_time_s" in m:
-        t = float(m["estimated_print_time_s"])
+    if m.n_layers is not None:
+        rows.append(("layers", f"{m.n_layers}"))
+    if m.estimated_print_time_s is not None:
+        t = m.estimated_print_time_s
         rows.append(("estimated print time", f"{int(t // 3600)} h {int(t % 3600 // 60):02d} min"))
-    if "material_mm3" in m:
-        rows.append(("material", f"{m['material_mm3'] / 1000:.1f} cm³"))
-    if "n_collisions" in m:
-        rows.append(("nozzle collisions", f"{m['n_collisions']}"))
-    if "sf.heldout.overhang_area_fraction_layers" in m and "sf.heldout.overhang_area_fraction_planar" in m:
+    if m.material_mm3 is not None:
+        rows.append(("material", f"{m.material_mm3 / 1000:.1f} cm³"))
+    if m.n_collisions is not None:
+        rows.append(("nozzle collisions", f"{m.n_collisions}"))
+    if m.overhang_layers is not None and m.overhang_layers_planar is not None:
         rows.append(("overhang, held out, exported layers (planar)",
-                     f"{pct(m['sf.heldout.overhang_area_fraction_layers'])} "
-                     f"({pct(m['sf.heldout.overhang_area_fraction_planar'])})"))
-    if "fea.max_strain" in m and "fea.planar_zigzag.max_strain" in m:
+                     f"{pct(m.overhang_layers)} ({pct(m.overhang_layers_planar)})"))
+    if m.max_strain is not None and m.max_strain_planar_zigzag:
         rows.append(("max strain, printed (planar + zig-zag)",
-                     f"{m['fea.max_strain']:.4g} ({m['fea.planar_zigzag.max_strain']:.4g}, "
-                     f"{100 * (m['fea.max_strain'] / m['fea.planar_zigzag.max_strain'] - 1):+.1f} %)"))
+                     f"{m.max_strain:.4g} ({m.max_strain_planar_zigzag:.4g}, "
+                     f"{100 * (m.max_strain / m.max_strain_planar_zigzag - 1):+.1f} %)"))
     return rows
 
 

@@ -1,6 +1,7 @@
 """Cache keys: digests of a step's name, version and parameters, with inputs by their digest."""
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from pydantic import BaseModel
@@ -10,11 +11,14 @@ from neuralslicer.storage.store import ArtifactRef
 
 
 def canonical(value: Any) -> Any:
-    """A JSON-able canonical form: artifacts by digest, pydantic models by their fields."""
+    """A JSON-able canonical form: artifacts by digest, pydantic models by their fields, other dataclasses as the
+    list of their fields' values (as the tuple they stand for)."""
     if isinstance(value, ArtifactRef):
         return {"artifact": value.digest}
     if isinstance(value, BaseModel):
         return canonical(value.model_dump(mode="json"))
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return [canonical(getattr(value, f.name)) for f in dataclasses.fields(value)]
     if isinstance(value, dict):
         return {str(k): canonical(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

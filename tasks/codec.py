@@ -17,6 +17,7 @@ from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Solid
 from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
+from neuralslicer.pipeline import RoundPrint, TriedPrint
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
@@ -220,8 +221,8 @@ def read_user_field(ref: ArtifactRef | None) -> tuple[np.ndarray | None, np.ndar
 
 def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
              layers: ArtifactRef, motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
-             attempts: list[tuple[str, ArtifactRef, ArtifactRef]],
-             sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None,
+             attempts: list[TriedPrint[ArtifactRef]],
+             sr_rounds: list[RoundPrint[ArtifactRef]] | None = None,
              toolpaths: ArtifactRef | None = None, program_ref: ArtifactRef | None = None) -> RunResults:
     """Every step's result of one slice, as the output contract needs them."""
     from neuralslicer.outputs import Attempt, RunResults
@@ -232,8 +233,8 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
     surface_mesh, surface_attrs = read_surface(surface)
     # the G-code comes from the store: of the program, the export reads what it draws
     # the first print's map first: its waypoints are read and dropped before the printed print's arrays come
-    first = ({f"first print ({attempts[0][0]})": read_collision_map(attempts[0][2])}
-             if attempts and attempts[0][2] != motion else {})
+    first = ({f"first print ({attempts[0].label})": read_collision_map(attempts[0].motion)}
+             if attempts and attempts[0].motion != motion else {})
     tp, program, print_metrics = read_motion(motion, ProgramMoves if program_ref is not None else MachineProgram)
     gcode = read_program(program_ref) if program_ref is not None else None
     collided = read_collided(motion)
@@ -245,8 +246,8 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
         collision_maps=maps, collided=collided, wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
         stress=read_stress(stress) if stress is not None else None,
         verify=read(verify) if verify is not None else None,
-        attempts=[Attempt(label, read_field(c, f), attrs_of(p)["metrics"]) for label, f, p in attempts],
-        strength_rounds=[read_strength_round(label, p, printed) for label, _, p, printed in sr_rounds or []],
+        attempts=[Attempt(a.label, read_field(c, a.field), attrs_of(a.motion)["metrics"]) for a in attempts],
+        strength_rounds=[read_strength_round(r.label, r.motion, r.printed_fea) for r in sr_rounds or []],
         gcode=gcode,
     )
 

@@ -5,6 +5,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.fileio import write_text_atomic
+from neuralslicer.pipeline import RoundPrint, TriedPrint
 from neuralslicer.storage import ArtifactRef
 from neuralslicer.tasks.codec import read_run
 from neuralslicer.tasks.common import pipeline_task
@@ -22,8 +23,8 @@ def _export_current(out: ArtifactRef, params: dict[str, Any]) -> bool:
 def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, surface: ArtifactRef,
                 samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, layers: ArtifactRef,
                 motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,
-                alpha_deg: float, beta_deg: float, attempts: list[tuple[str, ArtifactRef, ArtifactRef]] | None = None,
-                sr_rounds: list[tuple[str, ArtifactRef, ArtifactRef, ArtifactRef]] | None = None,
+                alpha_deg: float, beta_deg: float, attempts: list[TriedPrint[ArtifactRef]] | None = None,
+                sr_rounds: list[RoundPrint[ArtifactRef]] | None = None,
                 toolpaths: ArtifactRef | None = None, program: ArtifactRef | None = None) -> tuple[dict, dict]:
     """Write model.ply, layers/, field.vtu, samples_B.ply, the print (``motion``: the motion step's output; the
     G-code of ``program``), metrics.json, report.md and figures to out_dir."""

@@ -82,7 +82,8 @@ def test_compare_rejects_a_folder_without_metrics(tmp_path: Path) -> None:
 
 
 def test_compare_command_prints_a_table_and_exits_1_when_runs_differ(tmp_path: Path) -> None:
-    """The command prints the differing keys with both values; exit 1 when they differ, 0 when not; bad input exits 2."""
+    """The command prints the headline figures of both runs, then the differing keys with both values; exit 1 when
+    they differ, 0 when not; bad input exits 2."""
     a = _run_folder(tmp_path / "a", {"n_layers": 10, "sf.overhang_area_fraction": 0.25})
     b = _run_folder(tmp_path / "b", {"n_layers": 10, "sf.overhang_area_fraction": 0.125})
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
@@ -90,7 +91,10 @@ def test_compare_command_prints_a_table_and_exits_1_when_runs_differ(tmp_path: P
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 1, done.stderr
     assert "sf.overhang_area_fraction" in done.stdout and "0.25" in done.stdout and "0.125" in done.stdout
-    assert "n_layers" not in done.stdout and "1 difference(s)" in done.stdout
+    assert "1 difference(s)" in done.stdout
+    figures, rest = done.stdout.split("parameters:", 1)
+    assert "layers (n_layers)" in figures and "overhang (sf.overhang_area_fraction)" in figures
+    assert "n_layers" not in rest and "sf.overhang_area_fraction" in rest   # equal: only among the figures
     same = subprocess.run([sys.executable, "-m", "neuralslicer.cli", "compare", str(a), str(a)], cwd=REPO,
                           capture_output=True, text=True, env=env, timeout=120)
     assert same.returncode == 0 and "0 difference(s)" in same.stdout
@@ -121,7 +125,10 @@ def test_compare_json_lists_the_differences_and_exits_1(tmp_path: Path, capsys) 
     code, doc = _compare_json(capsys, str(a), str(b))
     assert code == 1
     assert set(doc) == {"schema", "run_a", "run_b", "rtol", "atol", "ignore", "differ", "n_differences",
-                        "n_by_section", "differences"}
+                        "n_by_section", "figures", "differences"}
+    # the headline figures either run has (RunMetrics), with their labels, whether they differ or not
+    assert doc["figures"] == [{"section": "figures", "key": "n_layers", "label": "layers", "a": 10, "b": 12,
+                               "equal": False, "delta": 2.0, "only_in": None}]
     assert doc["schema"] == "neuralslicer.compare/1" and (doc["run_a"], doc["run_b"]) == (str(a), str(b))
     assert doc["rtol"] == 1e-6 and doc["atol"] == 1e-9 and doc["ignore"] == []
     assert doc["differ"] is True and doc["n_differences"] == 3 == len(doc["differences"])

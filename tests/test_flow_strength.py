@@ -12,6 +12,7 @@ from neuralslicer.cli.main import main
 from conftest import fast_config
 from neuralslicer.config import SliceConfig
 from neuralslicer.model.spec import load_spec
+from neuralslicer.run_metrics import RunMetrics
 
 pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 
@@ -88,6 +89,10 @@ def test_verify_prints_three_parts_and_strength_rounds_re_optimise_against_the_p
     for part in ("planar_zigzag", "planar_stress", "printed"):
         assert metrics[f"fea.{part}.max_strain"] > 0 and 0 <= metrics[f"fea.{part}.aligned_fraction"] <= 1
     assert metrics["fea.max_strain"] == metrics["fea.printed.max_strain"]
+    # a run with sr and --verify has every headline figure the schema names: its keys are the ones runs write
+    figures = RunMetrics.of(metrics)
+    assert [name for name, value in figures if value is None] == []
+    assert figures.max_strain == metrics["fea.max_strain"] and figures.field_steps == metrics["field.steps"]
     # the stress infill along the beam's bending stress beats the zig-zag on the same planar layers
     assert metrics["fea.planar_stress.aligned_fraction"] > 0.8 > metrics["fea.planar_zigzag.aligned_fraction"]
     assert metrics["fea.planar_stress.max_strain_p99"] < metrics["fea.planar_zigzag.max_strain_p99"]

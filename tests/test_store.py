@@ -80,6 +80,18 @@ def test_digest_uses_artifact_digests_and_model_fields():
     assert digest("cage", a) != digest("cage", ArtifactRef("/s1", "m/x/1", "d2"))
 
 
+def test_a_record_of_artifacts_keys_as_the_tuple_of_its_fields():
+    from neuralslicer.pipeline import RoundPrint, TriedPrint
+
+    a, m, f = ArtifactRef("/s1", "m/f/1", "d1"), ArtifactRef("/s1", "m/m/1", "d2"), ArtifactRef("/s1", "m/p/1", "d3")
+    # the export's key from before the records were typed: its caches stay valid
+    assert digest("export", [TriedPrint("first", a, m)], [RoundPrint("r", a, m, f)]) == \
+        digest("export", [("first", a, m)], [("r", a, m, f)])
+    # by the artifacts' digests, not their stores or paths
+    assert digest(TriedPrint("first", a, m)) == digest(TriedPrint("first", ArtifactRef("/s2", "x", "d1"), m))
+    assert digest(TriedPrint("first", a, m)) != digest(TriedPrint("second", a, m))
+
+
 def test_two_stores_never_share_a_cache_record():
     # remote (fsspec) stores keep their Prefect records in one shared folder: the store is in the key
     from neuralslicer.tasks.steps import surface_task
