@@ -11,7 +11,7 @@ from typing import Any
 from neuralslicer.cli.machines import add_machines_parser
 from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
 from neuralslicer.cli.preview import add_preview_parser
-from neuralslicer.cli.studies import add_compare_parser, add_study_parser
+from neuralslicer.cli.studies import add_compare_parser, add_explain_parser, add_study_parser
 from neuralslicer.flows.local_api import LocalApi, api_serving, start_local_api
 from neuralslicer.flows.settings import cache_settings, with_api_retry
 from neuralslicer.allocator import keep_freed_memory
@@ -240,6 +240,7 @@ def make_parser() -> ArgumentParser:
     add_fea_parser(sub)
     add_study_parser(sub)
     add_compare_parser(sub)
+    add_explain_parser(sub)
     add_preview_parser(sub)
     add_serve_parser(sub)
     add_machines_parser(sub)

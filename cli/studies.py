@@ -198,3 +198,30 @@ def add_compare_parser(sub: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the comparison as JSON (schema in docs/outputs.md)")
     p.add_argument("--all", action="store_true", help="also list the entries that are equal")
     p.set_defaults(func=cmd_compare)
+
+
+def cmd_explain(args: argparse.Namespace) -> int:
+    """Print, for each step of a run, whether it reused a result or computed one and why (a table, or JSON)."""
+    import json
+
+    from neuralslicer.flows.explain import explain_run, print_explanation
+
+    reasons = explain_run(args.run)
+    if args.json:
+        print(json.dumps({"run": str(args.run), "steps": [r.record() for r in reasons]}, indent=2))
+    else:
+        print_explanation(reasons, args.run)
+    return 0
+
+
+def add_explain_parser(sub: Any) -> None:
+    """Options of `neuralslicer explain RUN`."""
+    p = sub.add_parser(
+        "explain", help="for each step of a run, whether it reused a result and why it computed one",
+        description="For each step of a slice (its run.json and its store): 'reused' when another run made the "
+                    "step's result, 'computed' when this run made it, with the reason: what differs from the "
+                    "step's latest earlier result for the same model in the store (the step's code version, an "
+                    "input computed anew, a parameter with both values), or that there was none.")
+    p.add_argument("run", help="output folder of a slice")
+    p.add_argument("--json", action="store_true", help="print the steps as JSON")
+    p.set_defaults(func=cmd_explain)

@@ -34,20 +34,38 @@ from neuralslicer.tasks.steps import (cage_task, field_blend_task, field_task, l
 
 
 @dataclass
-class RunLog:
-    """The state of every task of one flow run, in order."""
+class TaskRun:
+    """One task run of a flow: the step, its final state's name (Completed / Cached / ...), its wall time (s, Prefect's
+    round trips included) and the store group it wrote or read."""
 
-    states: list[tuple[str, str]] = field(default_factory=list)
-    #: wall time of each task run (s), Prefect's round trips included, in the order of ``states``
-    walls: list[float] = field(default_factory=list)
+    task: str
+    state: str
+    wall_s: float
+    group: str
+
+    def record(self) -> dict[str, Any]:
+        """The task run as run.json lists it."""
+        return {"task": self.task, "state": self.state, "wall_s": self.wall_s, "group": self.group}
+
+
+@dataclass
+class RunLog:
+    """Every task run of one flow run, in order."""
+
+    tasks: list[TaskRun] = field(default_factory=list)
 
     def run(self, task: Any, **params: Any) -> ArtifactRef:
-        """Run a task, record its final state name (Completed / Cached / ...) and wall time, return its result."""
+        """Run a task, record it, return its result."""
         start = time.perf_counter()
         state: State = run_step(task, **params)
-        self.states.append((task.name, state.name))
-        self.walls.append(time.perf_counter() - start)
-        return state.result()
+        ref = state.result()
+        self.tasks.append(TaskRun(task.name, state.name, time.perf_counter() - start, ref.path))
+        return ref
+
+    @property
+    def all_cached(self) -> bool:
+        """Whether every task was served from the cache."""
+        return all(t.state == "Cached" for t in self.tasks)
 
 
 #: the task-run tag of a step that computes on a CUDA device: a Prefect tag concurrency limit of that name
@@ -176,14 +194,12 @@ def optimised_on(store: str, fields: list[ArtifactRef]) -> dict[str, Any] | None
 
 @dataclass
 class SliceRun:
-    """One pass of the pipeline: the model name, every task's state, each step's output ref, the provenance digest,
-    every task run's wall time."""
+    """One pass of the pipeline: the model name, every task run, each step's output ref, the provenance digest."""
 
     name: str
-    states: list[tuple[str, str]]
+    log: RunLog
     refs: dict[str, ArtifactRef | None]
     provenance_digest: str
-    walls: list[float] = field(default_factory=list)
 
 
 def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: str, user_field: str | None = None,
@@ -208,7 +224,7 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     refs = {"model": c.model, "surface": c.surface, "samples": c.samples, "cage": c.cage, "fea": c.fea,
             "stress_samples": c.stress, "field": p.field, "layers": p.layers, "toolpaths": p.toolpaths,
             "motion": p.motion, "program": c.program, "verify": c.verify}
-    return SliceRun(name, log.states, refs, provenance_digest, log.walls)
+    return SliceRun(name, log, refs, provenance_digest)
 
 
 def slice_run_name() -> str:
@@ -252,10 +268,11 @@ def slice_flow(
     run = slice_pipeline(spec, out_dir, config, store, user_field)
     summary = {
         "flow_run_name": flow_run.name,
+        "flow_run_id": str(flow_run.id),
         "report_artifact": publish_report(run.name, out_dir),
         "provenance_digest": run.provenance_digest,
-        "tasks": [{"task": t, "state": s, "wall_s": w} for (t, s), w in zip(run.states, run.walls)],
-        "all_cached": all(s == "Cached" for _, s in run.states),
+        "tasks": [t.record() for t in run.log.tasks],
+        "all_cached": run.log.all_cached,
         "wall_s": time.perf_counter() - start,
         "store": store,
         "groups": groups_used(run.refs),   # the group each step of the kept print wrote or read (docs/store.md)

@@ -18,16 +18,21 @@ from prefect.states import State
 
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.provenance import package_versions
-from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore, digest
+from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore, canonical, digest
 from neuralslicer.tasks.progress import say
 
 T = TypeVar("T")
 
 
+def keyed(parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The parameters a step's output digest covers (not the store, not ``exclude``)."""
+    skip = {"store", *exclude}
+    return {k: v for k, v in parameters.items() if k not in skip}
+
+
 def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
     """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""
-    skip = {"store", *exclude}
-    key = digest(step, version, {k: v for k, v in parameters.items() if k not in skip})
+    key = digest(step, version, keyed(parameters, exclude))
     model = parameters.get("name") or next(v.model for v in parameters.values() if isinstance(v, ArtifactRef))
     return ArtifactRef(store=str(parameters["store"]), path=f"{model}/{step}/{key}", digest=key)
 
@@ -57,6 +62,13 @@ class PipelineStep:
         """True when the output exists in the store (and passes the validity check)."""
         ref = self.output(parameters)
         return ArtifactStore(ref.store).exists(ref.path) and (self.valid is None or self.valid(ref, parameters))
+
+    def key_record(self, parameters: dict[str, Any]) -> dict[str, Any]:
+        """What the output's digest covers, kept in its attributes (``neuralslicer explain`` compares two of them):
+        the code version, the parameters in canonical form (inputs by digest) and the store path of each input."""
+        kept = keyed(self.bind(parameters), self.exclude)
+        return {"version": self.version, "parameters": json.loads(json.dumps(canonical(kept), default=str)),
+                "inputs": {k: v.path for k, v in kept.items() if isinstance(v, ArtifactRef)}}
 
     def cache_key(self, context: TaskRunContext, parameters: dict[str, Any]) -> str:
         """Prefect cache key: the step, the store it writes to and its output digest (stores that share a
@@ -111,6 +123,14 @@ def run_step(task_: Any, **parameters: Any) -> State:
     return task_(**parameters, return_state=True)
 
 
+def made_by() -> dict[str, str | None]:
+    """Which flow run wrote a step's output: ``neuralslicer explain`` tells a result a run made from one it reused."""
+    from prefect.runtime import flow_run
+
+    run_id = flow_run.id
+    return {"flow_run": str(run_id) if run_id else None}
+
+
 def then(parts: Iterable[T], finish: Callable[[], None]) -> Iterator[T]:
     """``parts``, then ``finish()`` once they run out."""
     yield from parts
@@ -147,7 +167,8 @@ def pipeline_task(
                 start = time.perf_counter()
                 say(f"{step}: started")
                 arrays, attrs = fn(out=out, **params)
-                record = {**attrs, "step": step, "versions": package_versions()}
+                record = {**attrs, "step": step, "versions": package_versions(), "key": pipeline.key_record(params),
+                          "made": made_by()}
 
                 def done() -> None:
                     """The step's wall time, once its arrays are made (streamed ones too)."""
