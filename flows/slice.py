@@ -128,7 +128,7 @@ class TaskSteps:
     def field(self, request: FieldRequest, inputs: FieldInputs[ArtifactRef], earlier: Sequence[Printed[ArtifactRef]]
               ) -> ArtifactRef:
         """The field step the request names: a blend, an S3 field or the neural one (refined, warm-started)."""
-        common = {"model": inputs.model, "cage": inputs.cage, "samples": inputs.samples, "stress": inputs.stress,
+        common = {"model": inputs.model, "cage": inputs.cage, "samples": inputs.samples, "stress": inputs.stress_samples,
                   "objectives": list(request.objectives)}
         if request.blend is not None:
             t, of = request.blend
@@ -212,7 +212,7 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     c = run_chain(TaskSteps(log, store, config.s3, config.s3_oneshot), spec, config, user)
     p = c.printed
     log.run(export_task, store=store, out_dir=out_dir, model=c.model, surface=c.surface, samples=c.samples, cage=c.cage,
-            field=p.field, layers=p.layers, motion=p.motion, stress=c.stress, verify=c.verify, robot=config.robot,
+            field=p.field, layers=p.layers, motion=p.motion, stress=c.stress_samples, verify=c.verify, robot=config.robot,
             alpha_deg=config.alpha_deg, beta_deg=config.neural.loss.beta_deg, attempts=c.attempts,
             sr_rounds=c.rounds, toolpaths=p.toolpaths, program=c.program)
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
@@ -222,7 +222,7 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     provenance_digest = record_provenance(out_dir, store, name, record)
     add_to_metrics(out_dir, record)
     refs = {"model": c.model, "surface": c.surface, "samples": c.samples, "cage": c.cage, "fea": c.fea,
-            "stress_samples": c.stress, "field": p.field, "layers": p.layers, "toolpaths": p.toolpaths,
+            "stress_samples": c.stress_samples, "field": p.field, "layers": p.layers, "toolpaths": p.toolpaths,
             "motion": p.motion, "program": c.program, "verify": c.verify}
     return SliceRun(name, log, refs, provenance_digest)
 

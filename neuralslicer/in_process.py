@@ -119,10 +119,10 @@ class InProcessSteps:
         if request.blend is not None:
             return blend_record(cage, earlier[request.blend[1]].field, request.blend[0])
         if request.method == "s3":
-            return s3_record(cage, solid, inputs.samples, inputs.stress, objectives, self.s3, model_name(inputs.model.spec))
+            return s3_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3, model_name(inputs.model.spec))
         if request.method == "s3_oneshot":
-            return s3_oneshot_record(cage, solid, inputs.samples, inputs.stress, objectives, self.s3_oneshot)
-        return optimised_record(cage, inputs.samples, inputs.stress, objectives, request.neural, solid,
+            return s3_oneshot_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3_oneshot)
+        return optimised_record(cage, inputs.samples, inputs.stress_samples, objectives, request.neural, solid,
                                 progress=self.progress, **self._starts(request, inputs, earlier))
 
     @staticmethod
@@ -208,7 +208,7 @@ def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN
         cage_attrs={**cage.to_arrays()[1], **cage.summary()}, field=field_of(cage, chain.printed.field), field_history=history_of(chain.printed.field),
         layers=chain.printed.layers, toolpaths=motion.toolpaths, program=motion.program, print_metrics=motion.metrics,
         collision_maps=maps, collided=np.asarray(motion.collisions.indices, np.int64), wall_s=dict(wall_s),
-        stress=chain.stress, verify=chain.verify,
+        stress=chain.stress_samples, verify=chain.verify,
         attempts=[Attempt(a.label, field_of(cage, a.field), a.motion.metrics) for a in chain.attempts],
         strength_rounds=rounds, gcode=chain.program)
 

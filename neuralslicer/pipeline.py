@@ -40,7 +40,7 @@ class FieldInputs(Generic[H]):
     model: H
     cage: H
     samples: H
-    stress: H | None = None
+    stress_samples: H | None = None
     user: H | None = None
 
 
@@ -124,7 +124,7 @@ class Chain(Generic[H]):
     samples: H
     cage: H
     fea: H | None
-    stress: H | None
+    stress_samples: H | None
     printed: Printed[H]
     program: H
     verify: H | None = None
@@ -170,11 +170,11 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
     surface, samples = steps.surface(model), steps.samples(model, config.samples)
     cage = steps.cage(model, samples, config.cage)
     fea = steps.fea(model) if config.needs_fea(spec) else None
-    stress = steps.stress_samples(model, fea) if "sr" in objectives else None
+    samples_t = steps.stress_samples(model, fea) if "sr" in objectives else None
     machine, toolpath = load_profile(config.machine), config.toolpath_for(spec)
     neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width, toolpath.collision_tilt_deg
                                      ).with_tilt_bound(machine.printing_direction_bound_deg())
-    printer = Printer(steps, FieldInputs(model, cage, samples, stress, user), config.layers, toolpath, machine,
+    printer = Printer(steps, FieldInputs(model, cage, samples, samples_t, user), config.layers, toolpath, machine,
                       fea if toolpath.infill == "stress" else None)
     outputs, attempts, kept = run_policy(CollisionPolicy.for_config(config, neural, objectives), printer.attempt)
     printed, request = outputs[kept], attempts[kept].request
@@ -186,7 +186,7 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
         verify = steps.verify(model, fea, cage, printed.field,
                               None if config.verify_tangents == "ideal" else printed.motion, config.layers, toolpath)
     listed = [TriedPrint(a.request.label, o.field, o.motion) for a, o in zip(attempts, outputs)]
-    return Chain(model, surface, samples, cage, fea, stress, printed, steps.program(printed.motion), verify,
+    return Chain(model, surface, samples, cage, fea, samples_t, printed, steps.program(printed.motion), verify,
                  listed if len(listed) > 1 else [], rounds)
 
 
@@ -204,10 +204,10 @@ def strength_rounds(printer: Printer[H], fea: H, current: Printed[H], request: F
                                     current.field, current.motion, printed))
         if r == n_rounds:
             break
-        stress = s.stress_samples(inputs.model, printed)
+        samples_t = s.stress_samples(inputs.model, printed)
         again = FieldRequest(f"strength round {r + 1}", "strength", request.method, request.neural, request.objectives,
                              warm_start=0)
-        field_ = s.field(again, FieldInputs(inputs.model, inputs.cage, inputs.samples, stress), [current])
+        field_ = s.field(again, FieldInputs(inputs.model, inputs.cage, inputs.samples, samples_t), [current])
         candidate = printer.print_field(field_, printed)
         n = s.hits(candidate.motion)[0]
         if n:
