@@ -73,7 +73,10 @@ def _reason(store: ArtifactStore, task: dict[str, Any], flow_run: str) -> StepRe
         how = "Prefect's cache record" if state == "Cached" else "the store (Prefect had no cache record of it)"
         source = f"flow run {made['flow_run']}{when}" if made.get("flow_run") else "an earlier run"
         return StepReason(task["task"], group, state, False, f"reused from {how}: made by {source}")
-    return StepReason(task["task"], group, state, True, _why_computed(store, group, attrs))
+    why = _why_computed(store, group, attrs)
+    if attrs.get("from_cage_cache"):
+        why = f"taken from the machine's cage cache, not built; {why}"
+    return StepReason(task["task"], group, state, True, why)
 
 
 def _why_computed(store: ArtifactStore, group: str, attrs: dict[str, Any]) -> str:

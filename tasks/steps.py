@@ -60,7 +60,7 @@ def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: Artifac
     if hit is not None and _intact_cage(*hit):
         arrays, attrs = hit
         say(f"cage: the cage of these inputs from the cage cache ({cache.root}), {attrs['n_elements']} tets")
-        return arrays, {k: v for k, v in attrs.items() if k != "cache_key"}
+        return arrays, {**{k: v for k, v in attrs.items() if k != "cache_key"}, "from_cage_cache": True}
     cage = make_cage(read_solid(model), read_samples(samples).points, config)
     arrays, attrs = cage.to_arrays()
     attrs.update(cage.summary())

@@ -22,13 +22,13 @@ def test_explain_says_what_a_run_reused_and_what_made_each_step_compute(prefect_
                                                                         tmp_path: Path, capsys) -> None:
     store = tmp_path / "store.zarr"
 
-    def slice_(out: str, **layers: float) -> Path:
+    def slice_(out: str, in_store: Path = store, **layers: float) -> Path:
         cfg = tmp_path / f"{out}.yaml"
         config = fast_config()
         config["layers"] = {**config["layers"], **layers}
         cfg.write_text(yaml.safe_dump(config))
         assert main(["slice", str(small_part), "--out", str(tmp_path / out), "--config", str(cfg), "--objectives",
-                     "none", "--store", str(store)]) == 0
+                     "none", "--store", str(in_store)]) == 0
         capsys.readouterr()   # the slice's own output
         return tmp_path / out
 
@@ -44,6 +44,11 @@ def test_explain_says_what_a_run_reused_and_what_made_each_step_compute(prefect_
     assert not computed & {"model", "surface", "samples", "cage", "field"}
     assert "config.layer_height: 1.0 -> 0.9" in thicker["layers"]["reason"]
     assert "its input layers is another result" in thicker["toolpaths"]["reason"]
+    # another store on this machine: every step computed, the cage taken from the machine's cage cache
+    elsewhere = _explain(capsys, slice_("d", in_store=tmp_path / "other.zarr"))
+    assert all(s["computed"] for s in elsewhere.values())
+    assert elsewhere["cage"]["reason"].startswith("taken from the machine's cage cache, not built; no earlier result")
+    assert "cage cache" not in elsewhere["samples"]["reason"]
 
 
 def test_explain_refuses_a_folder_that_is_not_a_run(tmp_path: Path, capsys) -> None:
