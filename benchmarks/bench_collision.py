@@ -73,7 +73,8 @@ def planned_print(store: Path | None) -> Path:
     """The print to check (cached .npz in the temporary folder): toolpaths as the toolpath step plans them up to
     the check."""
     from neuralslicer.motion import load_profile
-    from neuralslicer.motion.pipeline import clamp_to_platform, merge_short_moves
+    from neuralslicer.motion.planning import merge_short_moves
+    from neuralslicer.motion.reorient import clamp_to_platform
     from neuralslicer.toolpath import ToolpathConfig, toolpaths
     from neuralslicer.toolpath.beads import hold_beads
 

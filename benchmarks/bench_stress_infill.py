@@ -71,7 +71,7 @@ def exported_layers(run: Path):  # noqa: ANN201
 def time_plans(layers, solid, stress, repeats: int) -> dict:  # noqa: ANN001
     """Best wall / CPU time of plan_print with each infill (alternating), as the toolpaths step calls it (the
     solid's H counts waypoints outside the part), and the prints' figures."""
-    from neuralslicer.motion.pipeline import plan_print
+    from neuralslicer.motion.plan import plan_print
     from neuralslicer.toolpath import ToolpathConfig
 
     best: dict[str, dict] = {}

@@ -64,7 +64,7 @@ def warm_imports(config: Any, spec: Any) -> None:
     plotting libraries of the export: 2-4 s), while the local API server boots: a fresh command waits for it
     anyway, and the run's tasks then find them imported."""
     import neuralslicer.gcode.writers  # noqa: F401 - the program step
-    import neuralslicer.motion.pipeline  # noqa: F401 - the toolpaths and motion steps: the planner, scipy
+    import neuralslicer.motion.plan  # noqa: F401 - the toolpaths and motion steps: the planner, scipy
     import neuralslicer.outputs  # noqa: F401 - the export: matplotlib, pyvista
 
     if config.objectives_for(spec):

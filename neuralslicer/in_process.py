@@ -27,7 +27,8 @@ from neuralslicer.layers import LayerConfig, Layers, slice_layers
 from neuralslicer.model.solid import Solid, implicit_solid
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
-from neuralslicer.motion.pipeline import plan_motion_of, plan_toolpaths
+from neuralslicer.motion.plan import plan_motion_of
+from neuralslicer.toolpath.plan import plan_toolpaths
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.pipeline import Chain, FieldInputs, Printed, run_chain

@@ -152,7 +152,7 @@ def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: Art
                    machine: MachineProfile, t_max: float, fea: ArtifactRef | None = None) -> tuple[dict, dict]:
     """Toolpaths on every layer (shells, infill, order, bead widths and heights); with ``fea`` the infill can
     follow its stress."""
-    from neuralslicer.motion.pipeline import plan_toolpaths   # the planner (scipy): only when the step runs
+    from neuralslicer.toolpath.plan import plan_toolpaths   # the planner (scipy): only when the step runs
 
     stress = stress_field(read_fea(fea), read_fea_spec(model).top_fraction) if fea is not None else None
     tp = plan_toolpaths(read_layers(layers).meshes, platform_z=read_solid(model).platform_z, toolpath_cfg=config,
@@ -166,7 +166,7 @@ def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: Art
                 machine: MachineProfile) -> tuple[dict, dict]:
     """The exact collision check of the head, travel lifts, tilts and reach, and the machine program (IK, extrusion)
     with the print's metrics."""
-    from neuralslicer.motion.pipeline import plan_motion_of
+    from neuralslicer.motion.plan import plan_motion_of
 
     solid = read_solid(model)
     tp, program, metrics, collisions = plan_motion_of(read_toolpaths(toolpaths), platform_z=solid.platform_z,

@@ -296,7 +296,7 @@ def test_the_check_in_blocks_is_the_check_of_the_whole(monkeypatch):
     import dataclasses
 
     from neuralslicer.motion import collision
-    from neuralslicer.motion.pipeline import plan_toolpaths
+    from neuralslicer.toolpath.plan import plan_toolpaths
 
     tp = plan_toolpaths(cap_stack(6, thickness=0.6, r0=6.0, theta_max_deg=75.0, subdivisions=3), platform_z=-12.0)
     tilt = np.radians(50.0)       # one tilted tool axis everywhere: the head reaches back into the caps and below

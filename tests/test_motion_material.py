@@ -155,7 +155,8 @@ def test_the_structure_answers_for_every_moment():
 
 def test_plan_print_builds_one_structure(monkeypatch):
     """The check, the travel lifts, the tilts and the reach re-checks share one structure of the print."""
-    from neuralslicer.motion import pipeline
+    from neuralslicer.motion import plan
+    from neuralslicer.motion.profile import load_profile
 
     built = []
     of_toolpaths = PrintedMaterial.of_toolpaths.__func__
@@ -166,10 +167,10 @@ def test_plan_print_builds_one_structure(monkeypatch):
 
     monkeypatch.setattr(PrintedMaterial, "of_toolpaths", classmethod(counting))
     layers = cap_stack(6, thickness=0.6, r0=6.0, theta_max_deg=75.0, subdivisions=3)
-    tp, _, metrics, report = pipeline.plan_print(layers, platform_z=-12.0)
+    tp, _, metrics, report = plan.plan_print(layers, platform_z=-12.0)
     assert len(built) == 1
     assert metrics["axis_tilt"]["n_collisions_before"] > 0 or metrics["travel_lift"]["n_travels_lifted"] > 0
-    assert report.count == check_collisions(tp, pipeline.load_profile("table_bc_linuxcnc").nozzle, -12.0).count
+    assert report.count == check_collisions(tp, load_profile("table_bc_linuxcnc").nozzle, -12.0).count
 
 
 def test_the_print_structure_is_that_of_its_beads_tops_and_bottoms():
@@ -198,7 +199,8 @@ def test_the_motion_step_can_take_over_the_toolpaths():
     the program, and plans what the caller's copy plans."""
     import dataclasses
 
-    from neuralslicer.motion.pipeline import plan_motion_of, plan_toolpaths
+    from neuralslicer.motion.plan import plan_motion_of
+    from neuralslicer.toolpath.plan import plan_toolpaths
 
     tp = plan_toolpaths(cap_stack(4, thickness=0.6, r0=6.0, theta_max_deg=60.0, subdivisions=3), platform_z=-8.0)
     given = dataclasses.replace(tp, **{k: getattr(tp, k).copy() for k in ("layer", "path", "xyz", "axis", "thickness",

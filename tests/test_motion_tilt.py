@@ -83,7 +83,7 @@ def test_checking_a_subset_agrees_with_the_full_check():
 
 def test_plan_print_tilts_then_judges_again():
     from neuralslicer.motion import load_profile
-    from neuralslicer.motion.pipeline import _tilt_clear
+    from neuralslicer.motion.plan import _tilt_clear
     from neuralslicer.toolpath import ToolpathConfig
 
     profile = load_profile("table_bc_linuxcnc").model_copy(update={"nozzle": NOZZLE})

@@ -11,7 +11,7 @@ from typing import Any
 _WHERE = {
     "CollisionReport": "collision", "check_collisions": "collision", "platform_clearance": "head",
     "forward_kinematics": "kinematics", "inverse_kinematics": "kinematics", "machine_position": "kinematics",
-    "plan_print": "pipeline", "PRINT": "planning", "RETRACT": "planning", "TRAVEL": "planning",
+    "plan_print": "plan", "PRINT": "planning", "RETRACT": "planning", "TRAVEL": "planning",
     "MachineProgram": "planning", "auto_part_offset": "planning", "plan_motion": "planning",
     "program_metrics": "planning", "MachineProfile": "profile", "load_profile": "profile",
     "profile_names": "profile", "move_times": "timing", "program_time": "timing",

@@ -13,13 +13,14 @@ if TYPE_CHECKING:
     from neuralslicer.toolpath.generate import toolpaths
     from neuralslicer.toolpath.io import (plot_toolpaths_png, read_waypoints_csv, write_toolpaths_vtp,
                                           write_waypoints_csv)
+    from neuralslicer.toolpath.plan import plan_toolpaths
     from neuralslicer.toolpath.types import Toolpaths
 
 #: where each exported name lives
 _WHERE = {
     "ToolpathConfig": "config", "load_toolpath_config": "config", "toolpath_config_from_dict": "config",
     "toolpaths": "generate", "plot_toolpaths_png": "io", "read_waypoints_csv": "io", "write_toolpaths_vtp": "io",
-    "write_waypoints_csv": "io", "Toolpaths": "types",
+    "write_waypoints_csv": "io", "plan_toolpaths": "plan", "Toolpaths": "types",
 }
 
 __all__ = sorted(_WHERE)

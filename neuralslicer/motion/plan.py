@@ -1,27 +1,26 @@
-"""One entry point from curved layers to machine programs and files (SPEC steps 11-12)."""
+"""The motion step (SPEC step 12): toolpaths to the machine program, collision-free, with its metrics; and
+:func:`plan_print`, the toolpaths and motion steps in one call."""
 from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from neuralslicer.allocator import release_freed_memory
-from neuralslicer.errors import InputError, PlanError
-from neuralslicer.layers import LayerConfig
+from neuralslicer.errors import PlanError
 from neuralslicer.model.grid import values_above
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.material import PrintedMaterial
-from neuralslicer.motion.planning import MachineProgram, feature_runs, merge_short_moves, plan_motion, program_metrics
-from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.motion.planning import MachineProgram, feature_runs, plan_motion, program_metrics
+from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.motion.reorient import clamp_to_platform, clamp_to_reach, tilt_away
 from neuralslicer.motion.travel import raise_travels
 from neuralslicer.stress_field import StressLike
-from neuralslicer.toolpath.beads import bead_summary, hold_beads
+from neuralslicer.toolpath.beads import bead_summary
 from neuralslicer.toolpath.config import ToolpathConfig
-from neuralslicer.toolpath.generate import toolpaths
+from neuralslicer.toolpath.plan import machine_profile, plan_toolpaths
 from neuralslicer.toolpath.types import Toolpaths
 
 #: a printing waypoint farther than this (mm) outside the solid (H above it) counts as outside
@@ -47,37 +46,11 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
     widths are kept within the nozzle's bead widths). Metrics: estimated_print_time_s, toolpath_length_mm,
     n_waypoints, material_mm3, collisions, rotary statistics, timings.
     """
-    profile = _profile(profile)
+    profile = machine_profile(profile)
     tp = plan_toolpaths(layers, platform_z=platform_z, toolpath_cfg=toolpath_cfg, profile=profile, t_max=t_max,
                         stress=stress)
     return plan_motion_of(tp, platform_z=platform_z, solid_H=solid_H, toolpath_cfg=toolpath_cfg, profile=profile,
                           consume=True)
-
-
-def _profile(profile: MachineProfile | str | Path | None) -> MachineProfile:
-    """A machine profile from a profile, a shipped name or a YAML path (default ``table_bc_linuxcnc``)."""
-    return load_profile(profile or "table_bc_linuxcnc") if profile is None or isinstance(profile, (str, Path)) else profile
-
-
-def plan_toolpaths(layers: Sequence[trimesh.Trimesh], *, platform_z: float, toolpath_cfg: ToolpathConfig | None = None,
-                   profile: MachineProfile | str | None = None, t_max: float | None = None,
-                   stress: StressLike | None = None) -> Toolpaths:
-    """The toolpaths step: paths on every layer (:func:`plan_print` for the arguments), bead widths within the
-    nozzle's, thin beads held, short moves merged; what the motion step reports of them rides in ``attrs``."""
-    profile, cfg = _profile(profile), toolpath_cfg or ToolpathConfig()
-    t0 = time.perf_counter()
-    w_lo, w_hi = profile.nozzle.bead_width_mm
-    if not w_lo <= cfg.line_width <= w_hi:
-        raise InputError("toolpath.line_width", f"{cfg.line_width:g} mm is outside the bead widths the nozzle of "
-                         f"{profile.name} lays ({w_lo:g}..{w_hi:g} mm, nozzle.bead_width_mm)")
-    tp = toolpaths(layers, platform_z=platform_z, config=cfg, t_max=LayerConfig().t_max if t_max is None else t_max,
-                   stress=stress)
-    np.clip(tp.width, w_lo, w_hi, out=tp.width)
-    release_freed_memory()   # the layers' many small arrays, freed: room for the whole print's copies below
-    tp, beads = hold_beads(tp, profile.nozzle.bead_thickness_mm) if cfg.thin_beads == "carry" else (tp, None)
-    tp, n_merged = merge_short_moves(tp, profile)
-    tp.attrs.update(held_beads=beads, n_merged_short_moves=n_merged, toolpaths_s=time.perf_counter() - t0)
-    return tp
 
 
 def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -87,7 +60,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     turned into reach, then the machine program (IK, extrusion) and the print's metrics (:func:`plan_print`).
     With ``consume`` the arrays of ``tp`` are taken over (``tp`` is left empty), so that the toolpaths as they came
     are freed once the lifts have copied them, not held by the caller beside the program."""
-    profile, cfg = _profile(profile), toolpath_cfg or ToolpathConfig()
+    profile, cfg = machine_profile(profile), toolpath_cfg or ToolpathConfig()
     tp = _taken(tp) if consume else dataclasses.replace(tp, attrs=dict(tp.attrs))   # attrs: the caller's unchanged
     held, n_merged = tp.attrs.pop("held_beads", None), tp.attrs.pop("n_merged_short_moves", 0)
     toolpaths_s = tp.attrs.pop("toolpaths_s", 0.0)
