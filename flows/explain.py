@@ -1,8 +1,8 @@
 """``neuralslicer explain RUN``: for each step of a run, whether it reused a result and, where it computed one, why.
 
 A step's output group records what its digest covers (``key``: the step's code version, its parameters with inputs
-by digest, its inputs' groups), which flow run made it (``made``; ``tasks/common.py``) and when (``written_at``). A step of
-the run whose group another flow run made reused that result. A step whose group this run made computed it; the
+by digest, its inputs' groups), which flow run made it (``made``; ``tasks/common.py``) and when (``written_at``). A
+step of the run whose group another flow run made reused that result. A step whose group this run made computed it; the
 reason is what differs from the step's latest earlier result for the same model in the same store: the code
 version, an input computed anew, or a parameter (named, with both values).
 """
@@ -115,7 +115,7 @@ def _latest_before(store: ArtifactStore, group: str, at: str) -> dict[str, Any] 
 
 
 def _step_of(path: str | None) -> str:
-    """'the <step> result <digest>' of a group path."""
+    """'<step> <first 8 characters of the digest>' of a group path."""
     if not path:
         return "none"
     parts = path.split("/")

@@ -128,8 +128,8 @@ class TaskSteps:
     def field(self, request: FieldRequest, inputs: FieldInputs[ArtifactRef], earlier: Sequence[Printed[ArtifactRef]]
               ) -> ArtifactRef:
         """The field step the request names: a blend, an S3 field or the neural one (refined, warm-started)."""
-        common = {"model": inputs.model, "cage": inputs.cage, "samples": inputs.samples, "stress": inputs.stress_samples,
-                  "objectives": list(request.objectives)}
+        common = {"model": inputs.model, "cage": inputs.cage, "samples": inputs.samples,
+                  "stress": inputs.stress_samples, "objectives": list(request.objectives)}
         if request.blend is not None:
             t, of = request.blend
             return self._run(field_blend_task, cage=inputs.cage, field=earlier[of].field, planar=t)
@@ -212,8 +212,8 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     c = run_chain(TaskSteps(log, store, config.s3, config.s3_oneshot), spec, config, user)
     p = c.printed
     log.run(export_task, store=store, out_dir=out_dir, model=c.model, surface=c.surface, samples=c.samples, cage=c.cage,
-            field=p.field, layers=p.layers, motion=p.motion, stress=c.stress_samples, verify=c.verify, robot=config.robot,
-            alpha_deg=config.alpha_deg, beta_deg=config.neural.loss.beta_deg, attempts=c.attempts,
+            field=p.field, layers=p.layers, motion=p.motion, stress=c.stress_samples, verify=c.verify,
+            robot=config.robot, alpha_deg=config.alpha_deg, beta_deg=config.neural.loss.beta_deg, attempts=c.attempts,
             sr_rounds=c.rounds, toolpaths=p.toolpaths, program=c.program)
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,
                         extra={**(provenance_extra or {}), "store": store,

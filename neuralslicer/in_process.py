@@ -120,7 +120,8 @@ class InProcessSteps:
         if request.blend is not None:
             return blend_record(cage, earlier[request.blend[1]].field, request.blend[0])
         if request.method == "s3":
-            return s3_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3, model_name(inputs.model.spec))
+            return s3_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3,
+                             model_name(inputs.model.spec))
         if request.method == "s3_oneshot":
             return s3_oneshot_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3_oneshot)
         return optimised_record(cage, inputs.samples, inputs.stress_samples, objectives, request.neural, solid,

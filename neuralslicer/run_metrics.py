@@ -50,8 +50,8 @@ class RunMetrics(BaseModel):
         "fea.planar_zigzag.max_strain", "max strain, planar + zig-zag", "the same for planar layers with zig-zag "
         "infill: the reference a print is judged against")
     aligned_fraction: float | None = _figure(
-        "fea.aligned_fraction", "filaments along tau_max", "length fraction of the filaments in the most stressed voxels "
-        "that run along tau_max (projected into the layer), within a band of angles")
+        "fea.aligned_fraction", "filaments along tau_max", "length fraction of the filaments in the most stressed "
+        "voxels that run along tau_max (projected into the layer), within a band of angles")
     field_steps: int | None = _figure("field.steps", "steps", "optimisation steps of the kept field")
     field_stop: str | None = _figure(
         "field.stop", "stop", "why the optimisation stopped: constraints (met), loss (converged or at its target), "

@@ -30,8 +30,9 @@ def machine_profile(profile: MachineProfile | str | Path | None) -> MachineProfi
 def plan_toolpaths(layers: Sequence[trimesh.Trimesh], *, platform_z: float, toolpath_cfg: ToolpathConfig | None = None,
                    profile: MachineProfile | str | None = None, t_max: float | None = None,
                    stress: StressLike | None = None) -> Toolpaths:
-    """The toolpaths step: paths on every layer (:func:`neuralslicer.motion.plan.plan_print` for the arguments), bead widths within the
-    nozzle's, thin beads held, short moves merged; what the motion step reports of them rides in ``attrs``."""
+    """The toolpaths step: paths on every layer (:func:`neuralslicer.motion.plan.plan_print` for the arguments), bead
+    widths within the nozzle's, thin beads held, short moves merged; what the motion step reports of them rides in
+    ``attrs``."""
     profile, cfg = machine_profile(profile), toolpath_cfg or ToolpathConfig()
     t0 = time.perf_counter()
     w_lo, w_hi = profile.nozzle.bead_width_mm
