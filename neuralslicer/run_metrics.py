@@ -6,6 +6,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from neuralslicer.fileio import to_json
+
 
 def _figure(key: str, label: str, description: str) -> Any:  # noqa: ANN401 - a pydantic Field
     """A figure of the schema: its metrics.json key (the alias), its table label and what it means."""
@@ -59,8 +61,9 @@ class RunMetrics(BaseModel):
 
     @classmethod
     def of(cls, metrics: dict[str, Any]) -> RunMetrics:
-        """The figures of a metrics.json mapping (figures it lacks are None)."""
-        return cls.model_validate({k: v for k, v in metrics.items() if k in KEYS.values()})
+        """The figures of a metrics mapping, as metrics.json holds it or as the export makes it (numpy scalars too;
+        figures it lacks are None)."""
+        return cls.model_validate(to_json({k: v for k, v in metrics.items() if k in KEYS.values()}))
 
     @classmethod
     def label(cls, name: str) -> str:

@@ -1,6 +1,7 @@
 """The headline figures' schema (``RunMetrics``): read from metrics.json keys, None where a run has no such figure."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from neuralslicer.run_metrics import KEYS, RunMetrics
@@ -13,6 +14,8 @@ def test_figures_are_read_by_their_metrics_keys_and_missing_ones_are_none() -> N
     assert figures.max_strain is None and figures.material_mm3 is None
     assert figures.present() == {"n_layers": 151, "overhang_layers": 0.0016, "field_stop": "constraints"}
     assert "loss.total" not in KEYS.values()
+    # as the export makes them, before JSON: numpy scalars
+    assert RunMetrics.of({"n_layers": np.int64(7), "material_mm3": np.float32(2.5)}).n_layers == 7
 
 
 def test_every_figure_has_its_own_key_and_label() -> None:
