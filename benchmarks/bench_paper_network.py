@@ -97,7 +97,7 @@ def at_equal_time(rows: list[dict]) -> list[dict]:
     """Each network's best total loss at the default network's stop and at COMPARE_AT_S."""
     default = next((r for r in rows if r["network"] == "default"), None)
     stop = [default["curve"]["elapsed_s"][-1]] if default and default["curve"]["elapsed_s"] else []
-    times = stop + list(COMPARE_AT_S)
+    times = sorted(stop + list(COMPARE_AT_S))
     longest = max(r["curve"]["elapsed_s"][-1] for r in rows if r["curve"]["elapsed_s"])
     return [{"t_s": round(t, 1), **{r["network"]: best_at(r, t) for r in rows}} for t in times if t <= longest]
 
