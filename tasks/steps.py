@@ -147,7 +147,7 @@ def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifact
     return layers.to_arrays()
 
 
-@pipeline_task("toolpaths", version="12")
+@pipeline_task("toolpaths", version="13")
 def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig,
                    machine: MachineProfile, t_max: float, fea: ArtifactRef | None = None) -> tuple[dict, dict]:
     """Toolpaths on every layer (shells, infill, order, bead widths and heights); with ``fea`` the infill can

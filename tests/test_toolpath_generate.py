@@ -94,14 +94,21 @@ def test_tilted_stack_thickness_along_the_normal():
     assert _distance_to_layers(tp, layers).max() < 1e-3
 
 
-def test_travel_lifts_along_the_tool_axis(box_paths):
-    _, tp = box_paths
+@pytest.mark.parametrize("stack", ["box_paths", "cap_paths"])
+def test_travel_lifts_along_the_tool_axis(stack, request):
+    _, tp = request.getfixturevalue(stack)
     lift = np.flatnonzero(tp.path < 0)
     assert len(lift) > 0 and not tp.extrude[lift].any()
-    # first lift point of a pair sits travel_lift above the end of the previous path
+    # first lift point of a pair sits travel_lift above the end of the previous path, along the axis that printed
+    # it, and keeps that axis (the head turns to the next path's axis on the way, not at the part): between
+    # layers too, where the next layer's first axis differs from the last one's
     pairs = lift[tp.path[lift - 1] >= 0]
     d = tp.xyz[pairs] - tp.xyz[pairs - 1]
     assert np.allclose(d, ToolpathConfig().travel_lift * tp.axis[pairs - 1])
+    assert np.allclose(tp.axis[pairs], tp.axis[pairs - 1])
+    if stack == "cap_paths":   # the lifts at a layer change (lift points carry the next layer's index)
+        layer_change = pairs[tp.layer[pairs] != tp.layer[pairs - 1]]
+        assert len(layer_change) and not np.allclose(tp.axis[layer_change + 2], tp.axis[layer_change - 1])
     # every path starts with a travel
     starts = np.flatnonzero(np.diff(tp.path, prepend=-2) != 0) 
     assert not tp.extrude[starts].any()

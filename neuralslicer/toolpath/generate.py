@@ -530,10 +530,13 @@ def _layer_paths(patches: list[Patch], li: int, cfg: ToolpathConfig, start: Floa
 
 
 def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray, cur: FloatArray | None,
-                path_id: int, cfg: ToolpathConfig) -> tuple[FloatArray | None, int]:
+                cur_axis: FloatArray | None, path_id: int, cfg: ToolpathConfig
+                ) -> tuple[FloatArray | None, FloatArray | None, int]:
     """Emit one layer's paths, each after a lifted travel from the previous one when it changes patch or
-    jumps further than ``lift_min_travel``; returns the cursor and the next path id."""
-    prev_patch, prev_ax = None, None
+    jumps further than ``lift_min_travel`` (the first path of a layer always): the head lifts along the axis it
+    printed the last waypoint with (``cur_axis`` for the previous layer's), and turns to the next path's axis on the
+    way; returns the cursor, its axis and the next path id."""
+    prev_patch, prev_ax = None, cur_axis
     for p, th in zip(ordered, np.split(thick, np.cumsum([len(p.xyz) for p in ordered])[:-1])):
         if cur is not None:
             gap = float(np.linalg.norm(p.xyz[0] - cur))
@@ -546,7 +549,7 @@ def _emit_layer(cols: _Columns, li: int, ordered: list[_Path], thick: FloatArray
         cols.emit(li, path_id, p.xyz, p.axis, th, cfg.line_width if p.width is None else p.width, ext)
         path_id += 1
         cur, prev_ax, prev_patch = p.xyz[-1], p.axis[-1], p.patch
-    return cur, path_id
+    return cur, prev_ax, path_id
 
 
 def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
@@ -568,7 +571,7 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
                          "(supports and loads) in the model spec")
     cols = _Columns()
     below: TriangleSet | None = None
-    cur = None
+    cur = cur_axis = None
     path_id = n_loops = 0
     path_kinds: list[str] = []                     # one digit per path id: SHELL, INFILL or STRESS
     layer_patches = [_layer_patches(layer, li, cfg) if len(layer.faces) else ([], 0) for li, layer in enumerate(layers)]
@@ -598,7 +601,7 @@ def toolpaths(layers: Sequence[trimesh.Trimesh], platform_z: float,
             xyz, ax = np.concatenate([p.xyz for p in ordered]), np.concatenate([p.axis for p in ordered])
             thick = layer_thickness(xyz, ax, below, platform_z, cfg.thickness_cap_factor * t_max, t_max)
             start = len(cols.cols["xyz"])
-            cur, path_id = _emit_layer(cols, li, ordered, thick, cur, path_id, cfg)
+            cur, cur_axis, path_id = _emit_layer(cols, li, ordered, thick, cur, cur_axis, path_id, cfg)
             path_kinds.extend(str(p.kind) for p in ordered)
             cols.end_layer(start)
         below = TriangleSet(np.asarray(layer.vertices, np.float64), np.asarray(layer.faces, np.int64))
