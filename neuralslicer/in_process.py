@@ -28,12 +28,12 @@ from neuralslicer.model.solid import Solid, implicit_solid
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
 from neuralslicer.motion.plan import plan_motion_of
-from neuralslicer.toolpath.plan import plan_toolpaths
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.pipeline import Chain, FieldInputs, Printed, run_chain
 from neuralslicer.samples import SurfaceSamples, surface_samples
 from neuralslicer.toolpath.config import ToolpathConfig
+from neuralslicer.toolpath.plan import plan_toolpaths
 from neuralslicer.toolpath.types import Toolpaths
 
 T = TypeVar("T")
