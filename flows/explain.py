@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.errors import InputError
+from neuralslicer.flows.run_record import open_run_store, read_run_record
 from neuralslicer.provenance import flatten
 from neuralslicer.storage import ArtifactStore
 
@@ -37,27 +38,12 @@ class StepReason:
                 "reason": self.reason}
 
 
-def _read_run(run_dir: Path) -> dict[str, Any]:
-    """run.json of an output folder, or an InputError naming it."""
-    path = run_dir / "run.json"
-    try:
-        run = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(run_dir, "not the output folder of a slice (no run.json)") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"cannot read: {exc}") from None
-    if "flow_run_id" not in run or any("group" not in t for t in run.get("tasks", [])):
-        raise InputError(path, "written by a version before `explain` (no flow run id or task groups): slice again")
-    return run
-
-
 def explain_run(run_dir: str | Path) -> list[StepReason]:
     """Every task of the run in ``run_dir``, in order, with why it computed or reused its result."""
-    run = _read_run(Path(run_dir))
-    try:
-        store = ArtifactStore(run["store"], create=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(run["store"], f"the run's store cannot be opened: {exc}") from None
+    run, record = read_run_record(Path(run_dir))
+    if "flow_run_id" not in run or any("group" not in t for t in run.get("tasks", [])):
+        raise InputError(record, "written by a version before `explain` (no flow run id or task groups): slice again")
+    store = open_run_store(run, record)
     return [_reason(store, task, run["flow_run_id"]) for task in run["tasks"]]
 
 

@@ -1,37 +1,25 @@
 """``neuralslicer preview RUN_DIR``: (re)write a finished slice's ``preview.html`` from the program in its store."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Any
 
 from neuralslicer.errors import InputError
+from neuralslicer.flows.run_record import open_run_store, read_run_record
 from neuralslicer.motion.planning import ProgramMoves
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS, PREVIEW_FILE
 from neuralslicer.preview.data import PreviewData
 from neuralslicer.preview.page import write_preview
-from neuralslicer.storage import ArtifactRef, ArtifactStore
+from neuralslicer.storage import ArtifactRef
 from neuralslicer.tasks.codec import read_collided, read_motion
 
 
 def motion_ref(run_dir: Path) -> ArtifactRef:
     """The motion step's group of the print a slice wrote to ``run_dir``, as its run.json names it."""
-    if not run_dir.is_dir():
-        raise InputError(run_dir, "no such folder (give the output folder of `neuralslicer slice`)")
-    record = run_dir / "run.json"
-    try:
-        run: dict[str, Any] = json.loads(record.read_text())
-    except FileNotFoundError:
-        raise InputError(record, "no such file: not the output folder of a finished `neuralslicer slice`") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(record, f"cannot read: {exc}") from None
-    group = (run.get("groups") or {}).get("motion") if isinstance(run, dict) else None
+    run, record = read_run_record(run_dir)
+    group = (run.get("groups") or {}).get("motion")
     if not group or not run.get("store"):
         raise InputError(record, "names no store and motion group (written by an older neuralslicer: slice again)")
-    try:
-        store = ArtifactStore(run["store"], create=False)
-    except FileNotFoundError:
-        raise InputError(run["store"], f"no artifact store there (the store {record} names)") from None
+    store = open_run_store(run, record)
     if not store.exists(group):
         raise InputError(run["store"], f"has no group {group} (the motion step {record} names): slice again")
     return store.ref(group, group.rsplit("/", 1)[-1])

@@ -53,4 +53,4 @@ def test_explain_says_what_a_run_reused_and_what_made_each_step_compute(prefect_
 
 def test_explain_refuses_a_folder_that_is_not_a_run(tmp_path: Path, capsys) -> None:
     assert main(["explain", str(tmp_path)]) == 2
-    assert "no run.json" in capsys.readouterr().err
+    assert "run.json: no such file" in capsys.readouterr().err
