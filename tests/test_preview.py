@@ -47,18 +47,29 @@ def test_moves_are_back_plotted_through_the_profile(curved) -> None:
 
 
 def test_the_preview_turns_axes_only_for_the_moves_it_keeps(curved) -> None:
-    """The preview computes the tool axes and tilts at the moves it keeps only, and its tips and lengths in chunks:
-    the same moves and values as from every move's attributes."""
+    """The preview makes the tips of the drawable moves only, their lengths, widths and times a chunk at a time and
+    the tool axes and tilts at the moves it keeps: the same moves and values as from every move's attributes, with
+    chunks of any size."""
+    import neuralslicer.preview.data as data
+
     tp, prog, _, report = curved
-    lean = move_attributes(prog, tp.width, axes=False)
-    assert lean.axis is None and lean.tilt_deg is None
     full = move_attributes(prog, tp.width)
-    assert np.array_equal(lean.tip, full.tip) and np.array_equal(lean.length_mm, full.length_mm)
-    a = preview_data(prog, tp.width, report.indices, max_points=500)
     b = decimate(full, colliding_moves(prog.source, report.indices), max_points=500)
-    assert 0 < len(a) < len(prog)
-    for name in ("move", "tip", "axis", "tilt_deg", "layer", "kind", "feed_mm_s", "width_mm", "level"):
-        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    drawable = data.drawable_moves(prog)
+    assert np.array_equal(drawable.tip, full.tip[drawable.move]) and len(drawable.move) < len(prog)
+    for chunk in (data.CHUNK_MOVES, 97, 7):
+        data.CHUNK_MOVES = chunk
+        try:
+            a = preview_data(prog, tp.width, report.indices, max_points=500)
+        finally:
+            data.CHUNK_MOVES = 250_000
+        assert 0 < len(a) < len(prog)
+        for name in ("move", "tip", "axis", "tilt_deg", "layer", "kind", "feed_mm_s", "width_mm", "level", "collisions"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (chunk, name)
+        assert (a.max_deviation_mm, a.n_moves, a.n_drawable) == (b.max_deviation_mm, b.n_moves, b.n_drawable)
+        # the mean deviation is summed a chunk at a time (the chunks' order of addition)
+        assert a.mean_deviation_mm == (b.mean_deviation_mm if chunk == 250_000 else pytest.approx(b.mean_deviation_mm,
+                                                                                                  rel=1e-12))
 
 
 def test_the_moves_read_back_draw_what_the_whole_program_draws(curved) -> None:

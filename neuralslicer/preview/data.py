@@ -15,6 +15,7 @@ draw few moves and a view of a few layers every kept one.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,8 +48,7 @@ class MoveAttributes:
     tip, axis : (n, 3) float64 tool tip and unit tool axis in the part (build) frame, by forward kinematics;
     kind : (n,) int8 TRAVEL/PRINT/RETRACT; layer : (n,) int64; time_s : (n,) planned duration;
     length_mm : (n,) length of the move arriving at each pose (0 for the first); width_mm : (n,) bead width of the
-    toolpath waypoint the move belongs to; tilt_deg : (n,) angle of the tool axis from +z. ``axis`` and ``tilt_deg``
-    may be None with the ``program`` they come from: the preview needs them only at the moves it keeps.
+    toolpath waypoint the move belongs to; tilt_deg : (n,) angle of the tool axis from +z.
     """
 
     tip: FloatArray
@@ -58,17 +58,29 @@ class MoveAttributes:
     time_s: FloatArray
     length_mm: FloatArray
     width_mm: FloatArray
-    tilt_deg: FloatArray | None
-    program: ProgramMoves | None = None
+    tilt_deg: FloatArray
 
     def axes_at(self, moves: IndexArray) -> tuple[FloatArray, FloatArray]:
-        """Tool axes (k, 3) and tilts (k,) of the moves ``moves`` (from the program where they are not kept)."""
-        if self.axis is not None:
-            return self.axis[moves], self.tilt_deg[moves]
-        m = self.program.machine[moves]
-        axis = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], self.program.profile.kinematics,
-                                  self.program.part_offset)[1]
-        return axis, tilt_degrees(axis)
+        """Tool axes (k, 3) and tilts (k,) of the moves ``moves``."""
+        return self.axis[moves], self.tilt_deg[moves]
+
+
+@dataclass
+class Drawable:
+    """The moves a preview can draw (a program's moves without its retractions: d of ``n_moves``), in execution
+    order: ``move`` (d,) int64 their indices in the program, ``tip`` (d, 3) float64 their tool tips, ``kind`` (d,)
+    int8, ``layer`` (d,) int64."""
+
+    move: IndexArray
+    tip: FloatArray
+    kind: np.ndarray
+    layer: IndexArray
+    n_moves: int
+
+
+#: per drawable move in [a, b) (indices into a :class:`Drawable`): the length of the move arriving there, its bead
+#: width and its planned time, each (b - a,) float64 and the caller's to change
+MoveValues = Callable[[int, int], tuple[FloatArray, FloatArray, FloatArray]]
 
 
 @dataclass
@@ -133,24 +145,79 @@ def waypoint_values(source: IndexArray, values: FloatArray) -> FloatArray:
     return np.asarray(values, np.float64)[source[pos[np.minimum(nxt, len(pos) - 1)]]]
 
 
-def move_attributes(program: ProgramMoves, widths: FloatArray, axes: bool = True) -> MoveAttributes:
+def move_attributes(program: ProgramMoves, widths: FloatArray) -> MoveAttributes:
     """Every move's tip and axis by forward kinematics, and its length, bead width and tilt (``widths``: (w,) the
-    toolpaths' width per waypoint). ``axes=False``: the axes and tilts left to :meth:`MoveAttributes.axes_at`, and
-    the tips made ``CHUNK_MOVES`` at a time (a long program's preview holds 40 bytes a move, not 120)."""
-    if axes:
-        tip, axis = program.forward()
-        tip, axis = np.asarray(tip, np.float64), np.asarray(axis, np.float64)
-        tilt = tilt_degrees(axis)
-    else:
-        machine, kin, n = program.machine, program.profile.kinematics, len(program.machine)
-        tip, axis, tilt = np.empty((n, 3)), None, None
-        for a in range(0, n, CHUNK_MOVES):
-            m = machine[a:a + CHUNK_MOVES]
-            tip[a:a + CHUNK_MOVES] = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], kin, program.part_offset)[0]
+    toolpaths' width per waypoint). What the preview draws is :func:`preview_data`'s, which makes these only where it
+    needs them."""
+    tip, axis = program.forward()
+    tip, axis = np.asarray(tip, np.float64), np.asarray(axis, np.float64)
     return MoveAttributes(tip, axis, np.asarray(program.kind, np.int8), np.asarray(program.layer, np.int64),
                           np.asarray(program.time_s, np.float64), segment_lengths(tip),
-                          waypoint_values(np.asarray(program.source, np.int64), widths), tilt,
-                          None if axes else program)
+                          waypoint_values(np.asarray(program.source, np.int64), widths), tilt_degrees(axis))
+
+
+def drawable_moves(program: ProgramMoves) -> Drawable:
+    """The program's drawable moves with their tips by forward kinematics, :data:`CHUNK_MOVES` at a time (no array
+    of every move's tip: 24 bytes a move less)."""
+    kind = np.asarray(program.kind, np.int8)
+    draw = np.flatnonzero(kind != RETRACT)
+    tip = np.empty((len(draw), 3))
+    for a in range(0, len(draw), CHUNK_MOVES):
+        tip[a:a + CHUNK_MOVES] = _tips(program, draw[a:a + CHUNK_MOVES])
+    return Drawable(draw, tip, kind[draw], np.asarray(program.layer)[draw].astype(np.int64, copy=False), len(kind))
+
+
+def _tips(program: ProgramMoves, moves: IndexArray) -> FloatArray:
+    """Tool tips (k, 3) of the program's moves ``moves`` by forward kinematics."""
+    m = program.machine[moves]
+    return forward_kinematics(m[:, :3], m[:, 3], m[:, 4], program.profile.kinematics, program.part_offset)[0]
+
+
+def program_axes(program: ProgramMoves, moves: IndexArray) -> tuple[FloatArray, FloatArray]:
+    """Tool axes (k, 3) and tilts (k,) of the program's moves ``moves`` by forward kinematics."""
+    m = program.machine[moves]
+    axis = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], program.profile.kinematics, program.part_offset)[1]
+    return axis, tilt_degrees(axis)
+
+
+def program_values(program: ProgramMoves, widths: FloatArray, drawable: Drawable) -> MoveValues:
+    """:data:`MoveValues` of the drawable moves from the program, a range at a time: what
+    ``segment_lengths`` of every move's tip, :func:`waypoint_values` and the program's times give at them."""
+    source = np.asarray(program.source, np.int64)
+    draw, tip = drawable.move, drawable.tip
+    sourced = np.flatnonzero(source >= 0)
+    last = int(sourced[-1]) if len(sourced) else -1
+    del sourced
+
+    def values(a: int, b: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Length, width and time of the drawable moves [a, b)."""
+        rows, at = draw[a:b], np.arange(a, b)
+        before = np.empty((b - a, 3))
+        inner = (at > 0) & (draw[np.maximum(at - 1, 0)] == rows - 1)   # the move before is drawable: its tip is here
+        before[inner] = tip[at[inner] - 1]
+        outer = np.flatnonzero(~inner)                                 # after a retraction, or the program's first
+        first = rows[outer] == 0
+        before[outer[first]] = tip[a + outer[first]]
+        if (~first).any():
+            before[outer[~first]] = _tips(program, rows[outer[~first]] - 1)
+        length = np.linalg.norm(tip[a:b] - before, axis=1)
+        return length, _widths_at(source, widths, rows, last), np.asarray(program.time_s)[rows].astype(np.float64)
+
+    return values
+
+
+def _widths_at(source: IndexArray, widths: FloatArray, rows: IndexArray, last: int) -> FloatArray:
+    """:func:`waypoint_values` of ``widths`` at the moves ``rows`` (sorted): each the width of the first move at or
+    after it with a waypoint (``last``, the last such move, for those after it), found within their span."""
+    if last < 0 or not len(rows):
+        return np.zeros(len(rows))
+    lo, hi = int(rows[0]), int(rows[-1]) + 1
+    while hi <= last and source[hi - 1] < 0:            # the span ends on a move with a waypoint (or past the last)
+        hi += 1
+    span = source[lo:hi]
+    at = np.where(span >= 0, np.arange(lo, hi), last)
+    nxt = np.minimum.accumulate(at[::-1])[::-1]
+    return np.asarray(widths, np.float64)[source[np.minimum(nxt[rows - lo], last)]]
 
 
 def tilt_degrees(axis: FloatArray) -> FloatArray:
@@ -212,14 +279,6 @@ def deviation_summary(tip: FloatArray, keep: BoolArray, chunks: list[tuple[int, 
         dev = deviations(tip[a:e + 1], keep[a:e + 1])
         largest, total = max(largest, float(dev.max())), total + float(dev.sum())
     return largest, total / max(len(tip), 1)
-
-
-def merged_sums(values: FloatArray, kept: IndexArray) -> FloatArray:
-    """Sum over the points merged into each kept point: ``values`` after the previous kept point up to this one
-    (the first: its own value)."""
-    if not len(kept):
-        return np.zeros(0)
-    return np.add.reduceat(values[:kept[-1] + 1], np.r_[kept[0], kept[:-1] + 1])
 
 
 def _distances(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
@@ -355,15 +414,27 @@ def detail_levels(sig: FloatArray, layer: IndexArray, keep_also: BoolArray, draw
 
 
 def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFAULT_MAX_POINTS,
-             draw_budget: int = DEFAULT_DRAW_BUDGET, consume: bool = False) -> PreviewData:
-    """The moves to draw (see the module): at most ``max_points`` (more only where the runs' ends and the
-    collisions alone exceed it), with coarser nested levels of at most ``draw_budget`` for wide views. With
-    ``consume`` the tips of ``attrs`` are dropped once the drawable ones are copied (``attrs.tip`` is None after)."""
-    n = len(attrs.tip)
+             draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
+    """The moves to draw of every move's attributes (:func:`simplify`; ``collided``: the colliding moves)."""
     draw = np.flatnonzero(attrs.kind != RETRACT)
-    tip, kind, layer = attrs.tip[draw], attrs.kind[draw], attrs.layer[draw]
-    if consume:
-        attrs.tip = None
+
+    def values(a: int, b: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Length, width and time of the drawable moves [a, b)."""
+        rows = draw[a:b]
+        return attrs.length_mm[rows], attrs.width_mm[rows], attrs.time_s[rows]
+
+    drawable = Drawable(draw, attrs.tip[draw], attrs.kind[draw], attrs.layer[draw], len(attrs.tip))
+    return simplify(drawable, collided, values, attrs.axes_at, max_points, draw_budget)
+
+
+def simplify(drawable: Drawable, collided: IndexArray, values: MoveValues,
+             axes_at: Callable[[IndexArray], tuple[FloatArray, FloatArray]], max_points: int = DEFAULT_MAX_POINTS,
+             draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
+    """The moves to draw (see the module): at most ``max_points`` (more only where the runs' ends and the
+    collisions alone exceed it), with coarser nested levels of at most ``draw_budget`` for wide views. ``collided``:
+    the program's colliding moves; ``values``: the drawable moves' lengths, widths and times; ``axes_at``: the tool
+    axes and tilts of program moves (asked for the kept ones only)."""
+    draw, tip, kind, layer = drawable.move, drawable.tip, drawable.kind, drawable.layer
     hit = np.zeros(len(draw), bool)
     marked = collided[np.isin(collided, draw)]
     n_collided = len(marked)
@@ -373,37 +444,53 @@ def decimate(attrs: MoveAttributes, collided: IndexArray, max_points: int = DEFA
     fixed = run_ends(kind, layer) | hit
     chunks = spans(fixed)
     sig = significance(tip, fixed, chunks=chunks)
+    del fixed
     keep = repaired(tip, sig, most_significant(sig, int(max_points * (1 - REPAIR_SHARE))), max_points, chunks=chunks)
     max_dev, mean_dev = deviation_summary(tip, keep, chunks)
     kept = np.flatnonzero(keep)
+    del keep
     moves = draw[kept]
-    length = attrs.length_mm[draw]
-    if len(draw):
-        length[0] = 0.0
-    span = merged_sums(length, kept)
-    width = merged_sums(length * attrs.width_mm[draw], kept)
-    del length
-    time = attrs.time_s[draw]
-    if len(draw):
-        time[0] = 0.0
-    dt = merged_sums(time, kept)
-    del time
-    width = np.divide(width, span, out=attrs.width_mm[moves].copy(), where=span > 1e-12)
+    span, width, dt, own_width = merged_values(values, kept, len(draw))
+    width = np.divide(width, span, out=own_width, where=span > 1e-12)
     feed = np.divide(span, dt, out=np.zeros(len(kept)), where=dt > 1e-12)
     level = detail_levels(sig[kept], layer[kept], hit[kept], draw_budget)
-    axis, tilt = attrs.axes_at(moves)
+    axis, tilt = axes_at(moves)
     return PreviewData(move=moves.astype(np.int64), tip=tip[kept], axis=axis, layer=layer[kept],
                        kind=kind[kept], tilt_deg=tilt, feed_mm_s=feed, width_mm=width,
                        level=level, collisions=np.flatnonzero(hit[kept]).astype(np.int64),
-                       max_deviation_mm=max_dev, mean_deviation_mm=mean_dev, n_moves=n, n_drawable=len(draw),
-                       draw_budget=draw_budget, n_collided=n_collided)
+                       max_deviation_mm=max_dev, mean_deviation_mm=mean_dev, n_moves=drawable.n_moves,
+                       n_drawable=len(draw), draw_budget=draw_budget, n_collided=n_collided)
+
+
+def merged_values(values: MoveValues, kept: IndexArray, n: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per kept move (k,) of ``n`` drawable ones: the length, the length-weighted width and the time of the moves
+    merged into it (after the kept move before, up to this one; the first drawable move's length and time count as
+    0), and its own width;
+    :data:`CHUNK_MOVES` drawable moves at a time (each chunk ends at a kept move: the same sums as the whole's)."""
+    span, width, dt, own = (np.zeros(len(kept)) for _ in range(4))
+    if not len(kept):
+        return span, width, dt, own
+    cuts = np.unique(np.r_[0, np.searchsorted(kept, np.arange(CHUNK_MOVES, n, CHUNK_MOVES)), len(kept)])
+    for i, j in zip(cuts[:-1], cuts[1:], strict=True):
+        a, b = (int(kept[i - 1]) + 1 if i else int(kept[0])), int(kept[j - 1]) + 1
+        length, w, t = values(a, b)
+        if a == 0:
+            length[0] = t[0] = 0.0
+        starts = np.r_[a, kept[i:j - 1] + 1] - a
+        span[i:j] = np.add.reduceat(length, starts)
+        width[i:j] = np.add.reduceat(length * w, starts)
+        dt[i:j] = np.add.reduceat(t, starts)
+        own[i:j] = w[kept[i:j] - a]
+    return span, width, dt, own
 
 
 def preview_data(program: ProgramMoves, widths: FloatArray, collided_waypoints: IndexArray,
                  max_points: int = DEFAULT_MAX_POINTS, draw_budget: int = DEFAULT_DRAW_BUDGET) -> PreviewData:
     """The decimated moves of a program to draw: ``widths`` (w,) the toolpaths' bead width per waypoint,
-    ``collided_waypoints`` the toolpath waypoint indices whose head collides (``CollisionReport.indices``)."""
-    attrs = move_attributes(program, widths, axes=False)
-    return decimate(attrs, colliding_moves(np.asarray(program.source, np.int64), collided_waypoints), max_points,
-                    draw_budget, consume=True)
-
+    ``collided_waypoints`` the toolpath waypoint indices whose head collides (``CollisionReport.indices``). The tips
+    are made for the drawable moves only, their lengths, widths and times a chunk at a time, the axes for the kept
+    moves: the same as :func:`decimate` of every move's attributes, in about 45 bytes a move instead of 100."""
+    drawable = drawable_moves(program)
+    return simplify(drawable, colliding_moves(np.asarray(program.source, np.int64), collided_waypoints),
+                    program_values(program, widths, drawable), lambda moves: program_axes(program, moves),
+                    max_points, draw_budget)
