@@ -76,12 +76,16 @@ def tree_memory(root: psutil.Process) -> tuple[int, int, dict[str, float]]:
 
 
 def _role(proc: psutil.Process, root: psutil.Process) -> str:
-    """What a child of the command is: its local API server, a helper it forked (the command's own command line: the
-    export's, the layers'), or another process (a cage's fTetWild worker)."""
+    """What a child of the command is: its local API server, a step's own process (a spawned one), a helper forked
+    by either (its parent's command line: the export's, the layers'), or another process (a cage's fTetWild
+    worker)."""
     cmdline = proc.cmdline()
     if "api_server" in " ".join(cmdline) or "uvicorn" in " ".join(cmdline):
         return "api_server"
-    return "helper" if cmdline == root.cmdline() else "other"
+    if "multiprocessing.spawn" in " ".join(cmdline):
+        return "step_process"        # a large print's motion, program or export step (tasks/isolate.py)
+    parent = proc.parent()
+    return "helper" if parent is not None and cmdline == parent.cmdline() else "other"
 
 
 class Watch:

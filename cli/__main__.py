@@ -3,4 +3,5 @@ import sys
 
 from neuralslicer.cli.main import main
 
-sys.exit(main())
+if __name__ == "__main__":   # not when a process spawned by the command imports its main module
+    sys.exit(main())

@@ -19,6 +19,10 @@ class InputError(NeuralSlicerError):
         self.message = message
         super().__init__(f"{self.where}: {message}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, str], dict]:
+        """Pickled with its two arguments (a step's own process sends its error back to the run)."""
+        return type(self), (self.where, self.message), self.__dict__
+
 
 class PlanError(NeuralSlicerError):
     """A print the machine cannot execute as planned (a pose beyond its axis limits): says where and why."""

@@ -180,6 +180,12 @@ class ArtifactStore:
             raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
         return [k for k, v in self._group(path).members(max_depth=None) if isinstance(v, zarr.Array)]
 
+    def shape(self, path: str, name: str) -> tuple[int, ...]:
+        """The shape of an array of a complete group, read from its metadata."""
+        if not self.exists(path):
+            raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
+        return tuple(self._group(path)[name].shape)
+
     def read_slices(self, path: str, name: str, length: int) -> Iterator[np.ndarray]:
         """An array of a complete group, ``length`` items along its first axis at a time (a large array read in
         bounded memory)."""

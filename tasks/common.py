@@ -19,7 +19,7 @@ from prefect.states import State
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.provenance import package_versions
 from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore, canonical, digest
-from neuralslicer.tasks.progress import say
+from neuralslicer.tasks.progress import run_logger, say
 
 T = TypeVar("T")
 
@@ -39,14 +39,16 @@ def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tup
 
 @dataclass(frozen=True)
 class PipelineStep:
-    """How a pipeline task names its output: step name, code version, parameters left out of the key, extra validity
-    check."""
+    """How a pipeline task names and writes its output: step name, code version, parameters left out of the key, extra
+    validity check, the step's function and when it runs in a process of its own."""
 
     step: str
     version: str
     signature: inspect.Signature
     exclude: tuple[str, ...] = ()
     valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None
+    fn: Callable[..., tuple[dict, dict]] | None = None
+    isolate: Callable[[dict[str, Any]], bool] | None = None
 
     def bind(self, parameters: dict[str, Any]) -> dict[str, Any]:
         """All parameters of a call, defaults included."""
@@ -69,6 +71,36 @@ class PipelineStep:
         kept = keyed(self.bind(parameters), self.exclude)
         return {"version": self.version, "parameters": json.loads(json.dumps(canonical(kept), default=str)),
                 "inputs": {k: v.path for k, v in kept.items() if isinstance(v, ArtifactRef)}}
+
+    def write(self, out: ArtifactRef, params: dict[str, Any], made: dict[str, Any]) -> None:
+        """Compute the step's output for its (bound) parameters and write it as the group ``out.path``, with its wall
+        time, the package versions, what its key covers and the flow run that made it (``made``); nothing when it is
+        there."""
+        step = self.step
+
+        def make() -> tuple[dict, dict]:
+            start = time.perf_counter()
+            say(f"{step}: started")
+            arrays, attrs = self.fn(out=out, **params)
+            record = {**attrs, "step": step, "versions": package_versions(), "key": self.key_record(params),
+                      "made": made}
+
+            def done() -> None:
+                """The step's wall time, once its arrays are made (streamed ones too)."""
+                record["wall_s"] = time.perf_counter() - start
+                say(f"{step}: done in {record['wall_s']:.1f} s")
+
+            streams = {k: v for k, v in arrays.items() if isinstance(v, ArrayStream)}
+            if streams:   # the store writes them first and reads the attributes after
+                arrays = {**arrays, **{k: ArrayStream(v.dtype, then(v.parts, done)) for k, v in streams.items()}}
+            else:
+                done()
+            return arrays, record
+
+        try:
+            ArtifactStore(out.store).write_once(out.path, make, done=lambda: self.done(params))
+        finally:
+            release_freed_memory()   # what the step freed goes back to the kernel (neuralslicer/allocator.py)
 
     def cache_key(self, context: TaskRunContext, parameters: dict[str, Any]) -> str:
         """Prefect cache key: the step, the store it writes to and its output digest (stores that share a
@@ -142,6 +174,7 @@ def pipeline_task(
     version: str,
     exclude: tuple[str, ...] = (),
     valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None,
+    isolate: Callable[[dict[str, Any]], bool] | None = None,
     **task_options: Any,
 ) -> Callable[[Callable[..., tuple[dict, dict]]], Any]:
     """Prefect task for one pipeline step.
@@ -150,42 +183,25 @@ def pipeline_task(
     `(arrays, attrs)`; the wrapper writes them atomically as the group `out.path`, with the wall time.
     `version` is the step's code version: bump it when the step's output for the same inputs changes (it enters the
     cache key, so older artifacts are not reused). Parameters named in `exclude` do not enter the cache key (e.g. file paths whose content is hashed
-    in another parameter). The task is idempotent: when its output group exists it does no work.
+    in another parameter). The task is idempotent: when its output group exists it does no work. `isolate`: for the
+    call's parameters, whether the step runs in a process of its own (``neuralslicer/tasks/isolate.py``).
     """
 
     def decorate(fn: Callable[..., tuple[dict, dict]]) -> Any:
         signature = inspect.signature(fn)
         public = signature.replace(parameters=[p for n, p in signature.parameters.items() if n != "out"])
-        pipeline = PipelineStep(step, version, public, exclude, valid)
+        pipeline = PipelineStep(step, version, public, exclude, valid, fn, isolate)
 
         @functools.wraps(fn)
         def body(*args: Any, **kwargs: Any) -> ArtifactRef:
             params = pipeline.bind(public.bind(*args, **kwargs).arguments)
             out = pipeline.output(params)
+            if pipeline.isolate is not None and pipeline.isolate(params) and not pipeline.done(params):
+                from neuralslicer.tasks.isolate import run_isolated
 
-            def make() -> tuple[dict, dict]:
-                start = time.perf_counter()
-                say(f"{step}: started")
-                arrays, attrs = fn(out=out, **params)
-                record = {**attrs, "step": step, "versions": package_versions(), "key": pipeline.key_record(params),
-                          "made": made_by()}
-
-                def done() -> None:
-                    """The step's wall time, once its arrays are made (streamed ones too)."""
-                    record["wall_s"] = time.perf_counter() - start
-                    say(f"{step}: done in {record['wall_s']:.1f} s")
-
-                streams = {k: v for k, v in arrays.items() if isinstance(v, ArrayStream)}
-                if streams:   # the store writes them first and reads the attributes after
-                    arrays = {**arrays, **{k: ArrayStream(v.dtype, then(v.parts, done)) for k, v in streams.items()}}
-                else:
-                    done()
-                return arrays, record
-
-            try:
-                ArtifactStore(out.store).write_once(out.path, make, done=lambda: pipeline.done(params))
-            finally:
-                release_freed_memory()   # what the step freed goes back to the kernel (neuralslicer/allocator.py)
+                run_isolated(fn.__module__, fn.__name__, out, params, made_by(), run_logger())
+            else:
+                pipeline.write(out, params, made_by())
             return out
 
         body.__signature__ = public  # type: ignore[attr-defined]

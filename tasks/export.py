@@ -9,6 +9,7 @@ from neuralslicer.pipeline import RoundPrint, TriedPrint
 from neuralslicer.storage import ArtifactRef
 from neuralslicer.tasks.codec import read_run
 from neuralslicer.tasks.common import pipeline_task
+from neuralslicer.tasks.isolate import large_print
 
 STAMP = ".neuralslicer-export"
 
@@ -19,7 +20,8 @@ def _export_current(out: ArtifactRef, params: dict[str, Any]) -> bool:
     return stamp.is_file() and stamp.read_text().strip() == out.digest and Path(params["out_dir"], "metrics.json").is_file()
 
 
-@pipeline_task("export", version="8", exclude=(), valid=_export_current)
+@pipeline_task("export", version="8", exclude=(), valid=_export_current,
+               isolate=large_print("motion", "toolpaths/xyz"))
 def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, surface: ArtifactRef,
                 samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, layers: ArtifactRef,
                 motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,

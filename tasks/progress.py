@@ -5,6 +5,7 @@ as Prefect INFO logs."""
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from types import TracebackType
@@ -19,6 +20,20 @@ from prefect.context import FlowRunContext, TaskRunContext
 
 #: seconds between plain progress lines (besides one per tenth of the work)
 LINE_EVERY_S = 10.0
+#: the logger of a step's work outside a Prefect run (a step in a process of its own: ``tasks/isolate.py`` sends its
+#: records to the run's log)
+STEP_LOGGER = "neuralslicer.step"
+#: ``0`` in a step's own process whose run prints its INFO records on the console: progress lines are not printed
+#: twice
+PROGRESS_CONSOLE_ENV = "NEURALSLICER_PROGRESS_CONSOLE"
+
+
+def run_logger() -> logging.Logger | logging.LoggerAdapter:
+    """Prefect's run logger in a flow or task run; elsewhere (a step in a process of its own) ``STEP_LOGGER``."""
+    try:
+        return get_run_logger()
+    except Exception:  # noqa: BLE001 - outside a flow or task run there is no run logger
+        return logging.getLogger(STEP_LOGGER)
 
 
 def console_prints_info(logger: logging.Logger) -> bool:
@@ -38,15 +53,17 @@ def console_prints_info(logger: logging.Logger) -> bool:
 
 def say(message: str) -> None:
     """One line in the Prefect run log (INFO) and on stderr (plain text when it is not a terminal), once: where
-    Prefect's console prints the run log's INFO records, that line is the terminal's."""
-    try:
-        logger = get_run_logger()
-    except Exception:  # noqa: BLE001 - outside a flow or task run there is no run logger
-        logger = None
-    if logger is None or not console_prints_info(logger.logger):
-        rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
-    if logger is not None:
+    Prefect's console prints the run log's INFO records, that line is the terminal's. Outside a run the line goes to
+    ``STEP_LOGGER`` (whose handlers, in a step's own process, send it to the run) and to stderr."""
+    logger = run_logger()
+    if isinstance(logger, logging.Logger):
         logger.info(message)
+        if os.environ.get(PROGRESS_CONSOLE_ENV, "1") != "0":
+            rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
+        return
+    if not console_prints_info(logger.logger):
+        rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
+    logger.info(message)
 
 
 class Progress:

@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import numpy as np
-from prefect import get_run_logger
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage, CageConfig, make_cage
@@ -24,7 +23,8 @@ from neuralslicer.storage.content_cache import ContentCache, cache_root
 from neuralslicer.tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_machine_program,
                          read_part_collisions, read_samples, read_solid, read_stress, read_toolpaths, read_user_field)
 from neuralslicer.tasks.common import pipeline_task
-from neuralslicer.tasks.progress import Progress, say
+from neuralslicer.tasks.isolate import large_print
+from neuralslicer.tasks.progress import Progress, run_logger, say
 
 
 @pipeline_task("model", version="1", exclude=("spec",), retries=0)
@@ -32,7 +32,7 @@ def model_task(out: ArtifactRef, store: str, name: str, spec: ModelSpec, content
     """Read every file of the spec and store the solid's components in the build frame."""
     solid = implicit_solid(spec)
     arrays, attrs = solid.to_arrays()
-    get_run_logger().info("model %s: %s, bounds %s", name, solid, np.round(solid.bounds, 3).tolist())
+    run_logger().info("model %s: %s, bounds %s", name, solid, np.round(solid.bounds, 3).tolist())
     return arrays, {**attrs, "spec": spec.model_dump(mode="json"), "content_sha256": content}
 
 
@@ -46,7 +46,7 @@ def surface_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict
 def samples_task(out: ArtifactRef, store: str, model: ArtifactRef, config: SampleConfig) -> tuple[dict, dict]:
     """Surface samples B with normals, area weights, kNN lists and platform flags."""
     samples = surface_samples(read_solid(model), config.n_samples, k=config.k, seed=config.seed)
-    get_run_logger().info("B: %d samples, %d on the platform, residual %.2e", len(samples), samples.on_platform.sum(),
+    run_logger().info("B: %d samples, %d on the platform, residual %.2e", len(samples), samples.on_platform.sum(),
                           samples.residual)
     return samples.to_arrays()
 
@@ -64,9 +64,9 @@ def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: Artifac
     cage = make_cage(read_solid(model), read_samples(samples).points, config)
     arrays, attrs = cage.to_arrays()
     attrs.update(cage.summary())
-    get_run_logger().info("cage: %d tets, %d vertices, genus %d", len(cage.tets), len(cage.vertices), attrs["genus"])
+    run_logger().info("cage: %d tets, %d vertices, genus %d", len(cage.tets), len(cage.vertices), attrs["genus"])
     if not cage.seeded:
-        get_run_logger().warning("cage: fTetWild's random draw could not be seeded here (neuralslicer/tetwild_seed.py): "
+        run_logger().warning("cage: fTetWild's random draw could not be seeded here (neuralslicer/tetwild_seed.py): "
                                  "another machine builds another cage from these inputs")
     cache.save("cage", out.digest, arrays, attrs)  # the same inputs reuse this cage (unseeded, fTetWild's varies)
     return arrays, attrs
@@ -112,7 +112,7 @@ def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifa
         arrays, attrs = s3_record(read_cage(cage), read_solid(model), read_samples(samples),
                                   read_stress(stress) if stress is not None else None, objectives, config, model.model,
                                   progress=lambda it, info: bar.update(it, total=float(info["fabrication_sl"])))
-    get_run_logger().info("s3 on the %s mesh: %s", attrs.get("on"), attrs.get("satisfaction"))
+    run_logger().info("s3 on the %s mesh: %s", attrs.get("on"), attrs.get("satisfaction"))
     return arrays, attrs
 
 
@@ -124,7 +124,7 @@ def s3_oneshot_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage
         arrays, attrs = s3_oneshot_record(read_cage(cage), read_solid(model), read_samples(samples),
                                           read_stress(stress) if stress is not None else None, objectives, config,
                                           progress=lambda step, info: bar.update(step, total=float(info["total"])))
-    get_run_logger().info("s3_oneshot: %s", attrs.get("satisfaction"))
+    run_logger().info("s3_oneshot: %s", attrs.get("satisfaction"))
     return arrays, attrs
 
 
@@ -132,7 +132,7 @@ def s3_oneshot_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage
 def field_blend_task(out: ArtifactRef, store: str, cage: ArtifactRef, field: ArtifactRef, planar: float
                      ) -> tuple[dict, dict]:
     """The field blended toward planar layers, (1 - planar) G + planar z: the last resort against collisions."""
-    get_run_logger().info("field blended toward planar layers: %.3g", planar)
+    run_logger().info("field blended toward planar layers: %.3g", planar)
     return blend_record(read_cage(cage), read(field), planar)
 
 
@@ -142,7 +142,7 @@ def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: Artifact
     """Isosurfaces of G trimmed by H <= 0, isovalues chosen for the thickness range, in print order."""
     with Progress("layers", total=1) as bar:
         layers = slice_layers(read_solid(model), read_field(read_cage(cage), field), config, progress=bar.update)
-    get_run_logger().info("layers: %d, thickness %s", len(layers.meshes),
+    run_logger().info("layers: %d, thickness %s", len(layers.meshes),
                           {k: round(v, 3) for k, v in layers.report.items() if k.startswith("thickness")})
     return layers.to_arrays()
 
@@ -157,11 +157,11 @@ def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: Art
     stress = stress_field(read_fea(fea), read_fea_spec(model).top_fraction) if fea is not None else None
     tp = plan_toolpaths(read_layers(layers).meshes, platform_z=read_solid(model).platform_z, toolpath_cfg=config,
                         profile=machine, t_max=t_max, stress=stress)
-    get_run_logger().info("toolpaths: %d waypoints, %d paths", len(tp), int(tp.attrs.get("n_paths", 0)))
+    run_logger().info("toolpaths: %d waypoints, %d paths", len(tp), int(tp.attrs.get("n_paths", 0)))
     return tp.to_arrays()
 
 
-@pipeline_task("motion", version="1")
+@pipeline_task("motion", version="1", isolate=large_print("toolpaths", "xyz"))
 def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: ArtifactRef, config: ToolpathConfig,
                 machine: MachineProfile) -> tuple[dict, dict]:
     """The exact collision check of the head, travel lifts, tilts and reach, and the machine program (IK, extrusion)
@@ -172,17 +172,17 @@ def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: Art
     tp, program, metrics, collisions = plan_motion_of(read_toolpaths(toolpaths), platform_z=solid.platform_z,
                                                       solid_H=solid.H, toolpath_cfg=config, profile=machine,
                                                       consume=True)
-    get_run_logger().info("motion: %d waypoints, %d collisions", metrics["n_waypoints"], metrics["n_collisions"])
+    run_logger().info("motion: %d waypoints, %d collisions", metrics["n_waypoints"], metrics["n_collisions"])
     return encode_motion(tp, program, metrics, collisions)
 
 
-@pipeline_task("program", version="1")
+@pipeline_task("program", version="1", isolate=large_print("motion", "toolpaths/xyz"))
 def program_task(out: ArtifactRef, store: str, motion: ArtifactRef) -> tuple[dict, dict]:
     """The machine program as G-code in the profile's dialect, streamed into the store a layer at a time."""
     from neuralslicer.gcode.writers import gcode_chunks
 
     program = read_machine_program(motion)
-    logger = get_run_logger()
+    logger = run_logger()
 
     def parts() -> Iterator[np.ndarray]:
         """The G-code's chunks as bytes; logs its size at the end."""

@@ -21,13 +21,16 @@ def _kept(metrics: dict) -> dict:
 
 @pytest.mark.slow   # two slices of the Ring with defaults (~2 min): the full suite runs it, `make test-fast` does not
 def test_the_flow_and_the_in_process_chain_give_the_same_metrics_and_gcode(prefect_server: None, ring_path: Path,
-                                                                          tmp_path: Path) -> None:
+                                                                          tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     from neuralslicer.cli.main import main
     from neuralslicer.config import SliceConfig
     from neuralslicer.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
 
     flow_out, core_out = tmp_path / "flow", tmp_path / "core"
+    # the flow's motion, program and export steps in processes of their own, as a large print's are
+    monkeypatch.setenv("NEURALSLICER_ISOLATE", "always")
     assert main(["slice", str(ring_path), "--up", "y", "--out", str(flow_out)]) == 0
     slice_model(spec_for_file(ring_path, "y"), SliceConfig(), core_out)
     flow = _kept(json.loads((flow_out / "metrics.json").read_text()))
