@@ -67,7 +67,8 @@ def _beam(voxels: int) -> dict:
 
 def _ring(voxels: int, out: Path) -> dict:
     """Ring (up y) on the platform, 100 N down on the top 2 mm; isotropic and planar-layer runs."""
-    from neuralslicer.fea import FEASpec, run_fea, stress_samples, verify_layers
+    from neuralslicer.fea import FEASpec, run_fea, stress_samples
+    from neuralslicer.verify import verify_layers
     from neuralslicer.fea.io import plot_field, write_fea_outputs
     from neuralslicer.model import implicit_solid, spec_for_file
 

@@ -19,7 +19,7 @@ from neuralslicer.errors import InputError
 from neuralslicer.fea import FEAResult, run_fea, stress_samples
 from neuralslicer.fea.samples import StressSamples, stress_field
 from neuralslicer.fea.spec import FEASpec
-from neuralslicer.fea.verify import printed_fea_record, verify_field, verify_print
+from neuralslicer.verify import printed_fea_record, verify_field, verify_print
 from neuralslicer.field_step import (Progress, Record, blend_record, field_of, history_of, optimised_record,
                                      s3_oneshot_record, s3_record)
 from neuralslicer.gcode.writers import gcode_bytes

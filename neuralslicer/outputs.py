@@ -22,7 +22,7 @@ import trimesh
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
-from neuralslicer.fea.verify import PART_FIGURES, strain_gains
+from neuralslicer.verify import PART_FIGURES, strain_gains
 from neuralslicer.fileio import atomic_path, save_vtk_xml, write_json_atomic, write_text_atomic
 from neuralslicer.forked import SharedJobs
 from neuralslicer.gcode.printpoints import write_printpoints_json

@@ -36,7 +36,7 @@ def verify_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: ArtifactR
     """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic).
     With ``motion`` (a print) the filaments lie along the printed toolpaths: the computed layers' own, and toolpaths of
     planar layers made here with the same settings; without, along the ideal direction for both."""
-    from neuralslicer.fea.verify import verify_field, verify_print
+    from neuralslicer.verify import verify_field, verify_print
 
     solid, computed = read_solid(model), read_field(read_cage(cage), field)
     if motion is None:
@@ -51,7 +51,7 @@ def printed_fea_task(out: ArtifactRef, store: str, model: ArtifactRef, fea: Arti
     """The FEA of the printed part (transversely isotropic, filaments along the printed toolpaths, layers of the
     field): stored like the isotropic FEA (a strength round samples its T from it), with the print's strain and how
     far tau_max turned."""
-    from neuralslicer.fea.verify import printed_fea_record
+    from neuralslicer.verify import printed_fea_record
 
     arrays, attrs = printed_fea_record(read_solid(model), read_fea_spec(model), read_field(read_cage(cage), field),
                                        read_motion(motion)[0], read_fea(fea))

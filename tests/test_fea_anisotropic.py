@@ -4,10 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neuralslicer.fea import FEASpec, verify_layers
+from neuralslicer.fea import FEASpec
+from neuralslicer.verify import verify_layers
 from neuralslicer.fea.element import rotate_D, stress_rotation, transversely_isotropic_D
 from neuralslicer.fea.shapes import BoxSolid
-from neuralslicer.fea.verify import material_frames
+from neuralslicer.verify import material_frames
 
 Y1, Y2, NU12 = 3500.0, 1200.0, 0.3
 SIGMA = 2.0          # MPa: pressure -2 MPa on the 10 x 10 end face
@@ -100,7 +101,7 @@ def _lines_along_y(n_lines: int = 20):
 def test_printed_toolpaths_set_the_stiff_axis_where_the_ideal_one_would_flatter() -> None:
     """An x-loaded bar printed with lines along y is as weak as Y2 says, though tau_max lies along x: the
     verification on printed tangents and the ideal one differ by Y1 / Y2."""
-    from neuralslicer.fea.verify import printed_tangents
+    from neuralslicer.verify import printed_tangents
 
     tp = _lines_along_y()
     tangent_at = printed_tangents(tp)
@@ -128,7 +129,7 @@ def _field_z():
 def test_verify_field_is_the_ideal_best_case_for_both_parts() -> None:
     """verify_field (verify_tangents: ideal) gives planar layers and the field's layers tau_max as stiff axis: an
     x-loaded bar with planar layers strains sigma / Y1 in both, and the parts say how they were verified."""
-    from neuralslicer.fea.verify import verify_field
+    from neuralslicer.verify import verify_field
 
     strains, figures = verify_field(BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec(), _field_z())
     assert figures["parts"] == ["planar", "printed"]
@@ -142,7 +143,7 @@ def test_a_part_printed_across_the_load_has_none_of_its_filaments_aligned() -> N
     """The printed part of lines along y in the x-loaded bar: strain sigma / Y2 and 0 % of the filament length within
     20 degrees of tau_max (x); the same lines turned to x: sigma / Y1 and 100 %."""
     from neuralslicer.fea import run_fea
-    from neuralslicer.fea.verify import _part
+    from neuralslicer.verify import _part
 
     solid, spec = BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec()
     reference = run_fea(solid, spec)
@@ -161,7 +162,7 @@ def test_filament_alignment_weighs_filaments_by_length() -> None:
     """Hand-made filaments in the x-loaded bar (tau_max = x everywhere, every voxel counted): 10 mm at 0°, 5 mm at 15°,
     8 mm at 30° and 5 mm at 90°: 15 of the 28 mm lie within 20° of tau_max."""
     from neuralslicer.fea import run_fea
-    from neuralslicer.fea.verify import filament_alignment
+    from neuralslicer.verify import filament_alignment
     from neuralslicer.toolpath.types import Toolpaths
 
     solid, spec = BoxSolid((0, 0, 0), (40, 10, 10)), _bar_spec()
@@ -185,7 +186,7 @@ def test_filament_alignment_weighs_filaments_by_length() -> None:
 def test_strain_gains_split_the_gain_into_filaments_and_layers() -> None:
     """Hand-computed: planar + zig-zag 4e-3, planar + stress infill 3e-3, printed 2.4e-3 (max strain): the
     filaments earn 25 %, the layers 20 % on top, 40 % in all; a missing part gives no gain."""
-    from neuralslicer.fea.verify import strain_gains
+    from neuralslicer.verify import strain_gains
 
     figures = {"planar_zigzag.max_strain": 4e-3, "planar_stress.max_strain": 3e-3, "printed.max_strain": 2.4e-3,
                "planar_zigzag.max_strain_p99": 2e-3, "planar_stress.max_strain_p99": 2e-3,

@@ -6,10 +6,11 @@ import pytest
 import trimesh
 from scipy.spatial import Delaunay, cKDTree
 
-from neuralslicer.fea import FEASpec, run_fea, verify_layers
+from neuralslicer.fea import FEASpec, run_fea
+from neuralslicer.verify import verify_layers
 from neuralslicer.fea.samples import stress_field
 from neuralslicer.fea.shapes import BoxSolid
-from neuralslicer.fea.verify import printed_tangents
+from neuralslicer.verify import printed_tangents
 from neuralslicer.stress_field import StressField
 from neuralslicer.toolpath import ToolpathConfig, toolpaths
 from neuralslicer.toolpath import stress_infill as si

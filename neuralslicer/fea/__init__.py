@@ -1,8 +1,8 @@
-"""Voxel finite-element analysis: stresses for strength reinforcement (T) and layer verification.
+"""Voxel finite-element analysis: stresses for strength reinforcement (T), isotropic or with a printed material.
 
 Public API: ``run_fea(solid, spec) -> FEAResult``, ``stress_samples(result, fraction) ->
-StressSamples``, ``verify_layers(solid, spec, lpd_at, tangent_at=None) -> dict``,
-``write_fea_outputs(result, out_dir) -> dict``; configuration ``FEASpec``.
+StressSamples``, ``write_fea_outputs(result, out_dir) -> dict``; configuration ``FEASpec``. Judging a print with
+it (the part's strain as printed against planar layers) is :mod:`neuralslicer.verify`'s.
 """
 from __future__ import annotations
 
@@ -31,7 +31,6 @@ __all__ = [
     "fea_metrics",
     "run_fea",
     "stress_samples",
-    "verify_layers",
     "voxelize",
     "write_fea_outputs",
 ]
@@ -48,9 +47,6 @@ def __getattr__(name: str) -> object:
     if name in ("StressSamples", "stress_samples"):
         from neuralslicer.fea import samples
         return getattr(samples, name)
-    if name == "verify_layers":
-        from neuralslicer.fea.verify import verify_layers
-        return verify_layers
     if name in ("write_fea_outputs", "fea_metrics"):
         from neuralslicer.fea import io
         return getattr(io, name)
