@@ -159,12 +159,13 @@ def cmd_compare(args: argparse.Namespace) -> int:
     exit 1 when they differ beyond the tolerances, 0 when not."""
     import json
 
-    from neuralslicer.compare import comparison_doc, compare_runs, headline_figures, print_comparison
+    from neuralslicer.compare import comparison_doc, compare_entries, headline_figures, print_comparison, run_entries
     from neuralslicer.fileio import to_json
 
     ignore = tuple(args.ignore or ())
-    diffs = compare_runs(args.run_a, args.run_b, rtol=args.rtol, atol=args.atol, include_all=args.all, ignore=ignore)
-    figures = headline_figures(args.run_a, args.run_b, rtol=args.rtol, atol=args.atol)
+    a, b = run_entries(args.run_a), run_entries(args.run_b)     # each folder's files read once
+    diffs = compare_entries(a, b, rtol=args.rtol, atol=args.atol, include_all=args.all, ignore=ignore)
+    figures = headline_figures(a[1], b[1], rtol=args.rtol, atol=args.atol)
     doc = comparison_doc(diffs, args.run_a, args.run_b, args.rtol, args.atol, ignore, figures)
     if args.json:
         print(json.dumps(to_json(doc), indent=2, allow_nan=False))

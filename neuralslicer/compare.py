@@ -90,10 +90,15 @@ def compare_runs(run_a: str | Path, run_b: str | Path, rtol: float = 0.0, includ
                  atol: float = 0.0, ignore: tuple[str, ...] = ()) -> list[Difference]:
     """The entries of two runs' parameters and metrics that differ beyond the tolerances (``values_equal``; all
     entries with include_all), sorted by key; keys matching ``ignore`` (``ignored``) and the volatile ones left out."""
-    pa, ma = run_entries(run_a)
-    pb, mb = run_entries(run_b)
+    return compare_entries(run_entries(run_a), run_entries(run_b), rtol, include_all, atol, ignore)
+
+
+def compare_entries(entries_a: tuple[dict[str, Any], dict[str, Any]], entries_b: tuple[dict[str, Any], dict[str, Any]],
+                    rtol: float = 0.0, include_all: bool = False, atol: float = 0.0, ignore: tuple[str, ...] = ()
+                    ) -> list[Difference]:
+    """:func:`compare_runs` of two runs' (parameters, metrics) as :func:`run_entries` reads them."""
     out = []
-    for section, a, b in (("parameters", pa, pb), ("metrics", ma, mb)):
+    for section, a, b in (("parameters", entries_a[0], entries_b[0]), ("metrics", entries_a[1], entries_b[1])):
         for key in sorted(set(a) | set(b)):
             if any(key == v or key.endswith("." + v) for v in VOLATILE) or ignored(key, ignore):
                 continue
@@ -112,11 +117,11 @@ def _difference(section: str, key: str, a: dict[str, Any], b: dict[str, Any], rt
     return Difference(section=section, key=key, a=va, b=vb, equal=equal, delta=delta, only_in=only_in)
 
 
-def headline_figures(run_a: str | Path, run_b: str | Path, rtol: float = 0.0, atol: float = 0.0) -> list[Difference]:
-    """The headline figures (:class:`RunMetrics`) that either run has, equal or not, in the schema's order: what a
-    comparison shows first. They are metrics too, and count there."""
-    ma, mb = run_entries(run_a)[1], run_entries(run_b)[1]
-    fa, fb = ({KEYS[k]: v for k, v in RunMetrics.of(m).present().items()} for m in (ma, mb))
+def headline_figures(metrics_a: dict[str, Any], metrics_b: dict[str, Any], rtol: float = 0.0, atol: float = 0.0
+                     ) -> list[Difference]:
+    """The headline figures (:class:`RunMetrics`) that either run's metrics have, equal or not, in the schema's order:
+    what a comparison shows first. They are metrics too, and count there."""
+    fa, fb = ({KEYS[k]: v for k, v in RunMetrics.of(m).present().items()} for m in (metrics_a, metrics_b))
     return [_difference("figures", key, fa, fb, rtol, atol) for key in KEYS.values() if key in fa or key in fb]
 
 
