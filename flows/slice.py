@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Any
 
 from prefect import flow, get_run_logger, tags
@@ -13,12 +12,11 @@ from prefect.states import State
 
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import CageConfig
-from neuralslicer.collision_policy import FieldRequest
 from neuralslicer.config import SampleConfig, SliceConfig
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec, model_name, spec_digest
 from neuralslicer.motion.profile import MachineProfile
-from neuralslicer.pipeline import FieldInputs, Printed, run_chain
+from neuralslicer.pipeline import FieldCall, run_chain
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.report_embed import embed_figures
 from neuralslicer.toolpath.config import ToolpathConfig
@@ -125,24 +123,23 @@ class TaskSteps:
         """The stress samples step."""
         return self._run(stress_samples_task, model=model, fea=fea)
 
-    def field(self, request: FieldRequest, inputs: FieldInputs[ArtifactRef], earlier: Sequence[Printed[ArtifactRef]]
-              ) -> ArtifactRef:
-        """The field step the request names: a blend, an S3 field or the neural one (refined, warm-started)."""
+    def field(self, call: FieldCall[ArtifactRef]) -> ArtifactRef:
+        """The field step of the call's method: the blend, an S3 field or the neural one (refined, warm-started)."""
+        inputs = call.inputs
         common = {"model": inputs.model, "cage": inputs.cage, "samples": inputs.samples,
-                  "stress": inputs.stress_samples, "objectives": list(request.objectives)}
-        if request.blend is not None:
-            t, of = request.blend
-            return self._run(field_blend_task, cage=inputs.cage, field=earlier[of].field, planar=t)
-        if request.method == "s3":
+                  "stress": inputs.stress_samples, "objectives": list(call.objectives)}
+        if call.method == "blend":
+            return self._run(field_blend_task, cage=inputs.cage, field=call.blended, planar=call.planar)
+        if call.method == "s3":
             return self._run(s3_field_task, **common, config=self.s3)
-        if request.method == "s3_oneshot":
+        if call.method == "s3_oneshot":
             with tags(*device_tags(self.s3_oneshot.device if self.s3_oneshot is not None else "auto")):
                 return self._run(s3_oneshot_field_task, **common, config=self.s3_oneshot)
-        refine = {"refine_prints": [earlier[i].motion for i in request.refine_on]} if request.refine_on else {}
-        if request.warm_start is not None:
-            refine["warm_start"] = earlier[request.warm_start].field
-        with tags(*device_tags(request.neural.device if request.objectives else None)):
-            return self._run(field_task, **common, config=request.neural, user_field=inputs.user, **refine)
+        refine = {"refine_prints": list(call.refine_on)} if call.refine_on else {}
+        if call.warm_start is not None:
+            refine["warm_start"] = call.warm_start
+        with tags(*device_tags(call.neural.device if call.objectives else None)):
+            return self._run(field_task, **common, config=call.neural, user_field=inputs.user, **refine)
 
     def layers(self, model: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, config: LayerConfig) -> ArtifactRef:
         """The layers step."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -13,7 +13,6 @@ import numpy as np
 import trimesh
 
 from neuralslicer.cage import Cage, CageConfig, make_cage
-from neuralslicer.collision_policy import FieldRequest
 from neuralslicer.config import SampleConfig, SliceConfig
 from neuralslicer.errors import InputError
 from neuralslicer.fea import FEAResult, run_fea, stress_samples
@@ -30,7 +29,7 @@ from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_co
 from neuralslicer.motion.plan import plan_motion_of
 from neuralslicer.motion.planning import MachineProgram
 from neuralslicer.motion.profile import MachineProfile
-from neuralslicer.pipeline import Chain, FieldInputs, Printed, run_chain
+from neuralslicer.pipeline import Chain, FieldCall, run_chain
 from neuralslicer.samples import SurfaceSamples, surface_samples
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.plan import plan_toolpaths
@@ -110,37 +109,38 @@ class InProcessSteps:
         result = FEAResult.from_arrays(*fea) if isinstance(fea, tuple) else fea
         return self._timed("stress_samples", lambda: stress_samples(result, model.fea_spec.top_fraction))
 
-    def field(self, request: FieldRequest, inputs: FieldInputs, earlier: Sequence[Printed]) -> Record:
-        """The field the request names."""
-        return self._timed("field", lambda: self._field(request, inputs, earlier))
+    def field(self, call: FieldCall) -> Record:
+        """The field of the call's method."""
+        return self._timed("field", lambda: self._field(call))
 
-    def _field(self, request: FieldRequest, inputs: FieldInputs, earlier: Sequence[Printed]) -> Record:
+    def _field(self, call: FieldCall) -> Record:
         """The field record: a blend, an S3 field or the neural one (refined, warm-started)."""
-        cage, solid, objectives = inputs.cage, inputs.model.solid, list(request.objectives)
-        if request.blend is not None:
-            return blend_record(cage, earlier[request.blend[1]].field, request.blend[0])
-        if request.method == "s3":
+        inputs = call.inputs
+        cage, solid, objectives = inputs.cage, inputs.model.solid, list(call.objectives)
+        if call.method == "blend":
+            return blend_record(cage, call.blended, call.planar)
+        if call.method == "s3":
             return s3_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3,
                              model_name(inputs.model.spec))
-        if request.method == "s3_oneshot":
+        if call.method == "s3_oneshot":
             return s3_oneshot_record(cage, solid, inputs.samples, inputs.stress_samples, objectives, self.s3_oneshot)
-        return optimised_record(cage, inputs.samples, inputs.stress_samples, objectives, request.neural, solid,
-                                progress=self.progress, **self._starts(request, inputs, earlier))
+        return optimised_record(cage, inputs.samples, inputs.stress_samples, objectives, call.neural, solid,
+                                progress=self.progress, **self._starts(call))
 
     @staticmethod
-    def _starts(request: FieldRequest, inputs: FieldInputs, earlier: Sequence[Printed]) -> dict[str, Any]:
-        """optimise_for_solid's refine / warm_start / user field options for a request."""
-        if not request.objectives:
+    def _starts(call: FieldCall) -> dict[str, Any]:
+        """optimise_for_solid's refine / warm_start / user field options for a neural call."""
+        if not call.objectives:
             return {}
         from neuralslicer.neural.optimise import FieldResult, Refinement
 
-        weights = FieldResult.weights_of(earlier[request.warm_start].field[0]) if request.warm_start is not None else None
+        weights = FieldResult.weights_of(call.warm_start[0]) if call.warm_start is not None else None
         options: dict[str, Any] = {}
-        if inputs.user is not None:
-            options.update(user_field=inputs.user[1], user_field_points=inputs.user[0])
-        if request.refine_on:
+        if call.inputs.user is not None:
+            options.update(user_field=call.inputs.user[1], user_field_points=call.inputs.user[0])
+        if call.refine_on:
             found = [part_collisions(m.toolpaths.xyz, m.collisions.indices, m.collisions.kind, m.collisions.locations)
-                     for m in (earlier[i].motion for i in request.refine_on)]
+                     for m in call.refine_on]
             options["refine"] = Refinement.of_prints(found, weights)
         elif weights is not None:
             options["warm_start"] = weights

@@ -17,6 +17,7 @@ from neuralslicer.config import SampleConfig, SliceConfig
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 
 H = TypeVar("H")
@@ -44,6 +45,39 @@ class FieldInputs(Generic[H]):
     user: H | None = None
 
 
+@dataclass(frozen=True)
+class FieldCall(Generic[H]):
+    """How one field is computed, the request's indices resolved to the handles they name: the one choice both
+    runners follow (:func:`field_call`).
+
+    method : "blend" (the field ``blended`` toward planar layers by ``planar``), "s3", "s3_oneshot" or "neural" (the
+    height field without objectives); refine_on : the motions of the prints whose collisions refine L_GC's pool;
+    warm_start : the field whose weights start the optimisation.
+    """
+
+    method: str
+    inputs: FieldInputs[H]
+    objectives: tuple[str, ...]
+    neural: NeuralConfig | None = None
+    planar: float = 0.0
+    blended: H | None = None
+    refine_on: tuple[H, ...] = ()
+    warm_start: H | None = None
+
+
+def field_call(request: FieldRequest, inputs: FieldInputs[H], earlier: Sequence[Printed[H]]) -> FieldCall[H]:
+    """The field a request asks for (``refine_on``, ``warm_start`` and ``blend`` index ``earlier``): a blend before
+    any method, then the request's method."""
+    if request.blend is not None:
+        planar, of = request.blend
+        return FieldCall("blend", inputs, request.objectives, planar=planar, blended=earlier[of].field)
+    if request.method in ("s3", "s3_oneshot"):
+        return FieldCall(request.method, inputs, request.objectives)
+    return FieldCall("neural", inputs, request.objectives, request.neural,
+                     refine_on=tuple(earlier[i].motion for i in request.refine_on),
+                     warm_start=earlier[request.warm_start].field if request.warm_start is not None else None)
+
+
 class Steps(Protocol[H]):
     """The pipeline's steps, each one call; the chain decides the order and what to do after a colliding print."""
 
@@ -65,8 +99,8 @@ class Steps(Protocol[H]):
     def stress_samples(self, model: H, fea: H) -> H:
         """Stress samples T from an FEA."""
 
-    def field(self, request: FieldRequest, inputs: FieldInputs[H], earlier: Sequence[Printed[H]]) -> H:
-        """Steps 4-9: the field a request asks for (``refine_on``, ``warm_start`` and ``blend`` index ``earlier``)."""
+    def field(self, call: FieldCall[H]) -> H:
+        """Steps 4-9: the field of a call (:func:`field_call`)."""
 
     def layers(self, model: H, cage: H, field: H, config: LayerConfig) -> H:
         """Step 10: curved layers."""
@@ -154,7 +188,7 @@ class Printer(Generic[H]):
 
     def attempt(self, request: FieldRequest, earlier: Sequence[Printed[H]]) -> tuple[Printed[H], PrintAttempt]:
         """Compute and print the field a request asks for; what its print hit."""
-        printed = self.print_field(self.steps.field(request, self.inputs, earlier))
+        printed = self.print_field(self.steps.field(field_call(request, self.inputs, earlier)))
         n, head, platform = self.steps.hits(printed.motion)
         if n:
             self.steps.note(f"{request.label}: {n} nozzle collisions ({head} of the head at a waypoint, {platform} "
@@ -207,7 +241,7 @@ def strength_rounds(printer: Printer[H], fea: H, current: Printed[H], request: F
         samples_t = s.stress_samples(inputs.model, printed)
         again = FieldRequest(f"strength round {r + 1}", "strength", request.method, request.neural, request.objectives,
                              warm_start=0)
-        field_ = s.field(again, FieldInputs(inputs.model, inputs.cage, inputs.samples, samples_t), [current])
+        field_ = s.field(field_call(again, FieldInputs(inputs.model, inputs.cage, inputs.samples, samples_t), [current]))
         candidate = printer.print_field(field_, printed)
         n = s.hits(candidate.motion)[0]
         if n:
