@@ -74,12 +74,12 @@ def large_print(parameter: str, array: str) -> Callable[[dict[str, Any]], bool]:
 
 
 def run_isolated(module: str, name: str, out: ArtifactRef, parameters: dict[str, Any], made: dict[str, Any],
-                 logger: Any) -> None:
+                 logger: logging.Logger | logging.LoggerAdapter) -> None:
     """Run the pipeline task ``module.name`` for ``parameters`` in a spawned process that writes ``out``; its log
     records go to ``logger`` (the run's), its error is raised here."""
     ctx = multiprocessing.get_context("spawn")
     receive, send = ctx.Pipe(duplex=False)
-    quiet = logger is not None and console_prints_info(getattr(logger, "logger", logger))
+    quiet = console_prints_info(getattr(logger, "logger", logger))
     process = ctx.Process(target=_child, args=(module, name, out, parameters, made, quiet, send),
                           name=f"neuralslicer-{name}", daemon=False)
     process.start()
@@ -97,8 +97,7 @@ def run_isolated(module: str, name: str, out: ArtifactRef, parameters: dict[str,
     finally:
         receive.close()
     for level, message in records:
-        if logger is not None:
-            logger.log(level, message)
+        logger.log(level, message)
     if outcome == "died":
         signal = -process.exitcode if process.exitcode is not None and process.exitcode < 0 else None
         raise StepProcessError(

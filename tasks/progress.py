@@ -56,12 +56,9 @@ def say(message: str) -> None:
     Prefect's console prints the run log's INFO records, that line is the terminal's. Outside a run the line goes to
     ``STEP_LOGGER`` (whose handlers, in a step's own process, send it to the run) and to stderr."""
     logger = run_logger()
-    if isinstance(logger, logging.Logger):
-        logger.info(message)
-        if os.environ.get(PROGRESS_CONSOLE_ENV, "1") != "0":
-            rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
-        return
-    if not console_prints_info(logger.logger):
+    shown_elsewhere = (os.environ.get(PROGRESS_CONSOLE_ENV, "1") == "0" if isinstance(logger, logging.Logger)
+                       else console_prints_info(logger.logger))
+    if not shown_elsewhere:
         rich.console.Console(stderr=True, highlight=False, soft_wrap=True).print(message, markup=False)
     logger.info(message)
 

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neuralslicer.motion.kinematics import forward_kinematics
 from neuralslicer.motion.planning import RETRACT, ProgramMoves
 from neuralslicer.preview import DEFAULT_DRAW_BUDGET, DEFAULT_MAX_POINTS
 from neuralslicer.toolpath.types import segment_lengths
@@ -163,20 +162,13 @@ def drawable_moves(program: ProgramMoves) -> Drawable:
     draw = np.flatnonzero(kind != RETRACT)
     tip = np.empty((len(draw), 3))
     for a in range(0, len(draw), CHUNK_MOVES):
-        tip[a:a + CHUNK_MOVES] = _tips(program, draw[a:a + CHUNK_MOVES])
+        tip[a:a + CHUNK_MOVES] = program.forward(draw[a:a + CHUNK_MOVES])[0]
     return Drawable(draw, tip, kind[draw], np.asarray(program.layer)[draw].astype(np.int64, copy=False), len(kind))
-
-
-def _tips(program: ProgramMoves, moves: IndexArray) -> FloatArray:
-    """Tool tips (k, 3) of the program's moves ``moves`` by forward kinematics."""
-    m = program.machine[moves]
-    return forward_kinematics(m[:, :3], m[:, 3], m[:, 4], program.profile.kinematics, program.part_offset)[0]
 
 
 def program_axes(program: ProgramMoves, moves: IndexArray) -> tuple[FloatArray, FloatArray]:
     """Tool axes (k, 3) and tilts (k,) of the program's moves ``moves`` by forward kinematics."""
-    m = program.machine[moves]
-    axis = forward_kinematics(m[:, :3], m[:, 3], m[:, 4], program.profile.kinematics, program.part_offset)[1]
+    axis = program.forward(moves)[1]
     return axis, tilt_degrees(axis)
 
 
@@ -185,9 +177,9 @@ def program_values(program: ProgramMoves, widths: FloatArray, drawable: Drawable
     ``segment_lengths`` of every move's tip, :func:`waypoint_values` and the program's times give at them."""
     source = np.asarray(program.source, np.int64)
     draw, tip = drawable.move, drawable.tip
-    sourced = np.flatnonzero(source >= 0)
-    last = int(sourced[-1]) if len(sourced) else -1
-    del sourced
+    reversed_sourced = source[::-1] >= 0
+    last = len(source) - 1 - int(reversed_sourced.argmax()) if reversed_sourced.any() else -1   # the last with one
+    del reversed_sourced
 
     def values(a: int, b: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Length, width and time of the drawable moves [a, b)."""
@@ -199,9 +191,9 @@ def program_values(program: ProgramMoves, widths: FloatArray, drawable: Drawable
         first = rows[outer] == 0
         before[outer[first]] = tip[a + outer[first]]
         if (~first).any():
-            before[outer[~first]] = _tips(program, rows[outer[~first]] - 1)
+            before[outer[~first]] = program.forward(rows[outer[~first]] - 1)[0]
         length = np.linalg.norm(tip[a:b] - before, axis=1)
-        return length, _widths_at(source, widths, rows, last), np.asarray(program.time_s)[rows].astype(np.float64)
+        return length, _widths_at(source, widths, rows, last), np.asarray(program.time_s)[rows].astype(np.float64, copy=False)
 
     return values
 
