@@ -13,7 +13,7 @@ from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_
 from neuralslicer.cli.preview import add_preview_parser
 from neuralslicer.cli.studies import add_compare_parser, add_explain_parser, add_study_parser
 from neuralslicer.flows.local_api import LocalApi, api_serving, start_local_api
-from neuralslicer.flows.settings import cache_settings, with_api_retry
+from neuralslicer.flows.settings import with_api_retry
 from neuralslicer.allocator import keep_freed_memory
 from neuralslicer.errors import InputError, NeuralSlicerError
 from neuralslicer.frames import UP_AXES
@@ -48,13 +48,12 @@ def _run_slice(spec: Any, out_dir: Path, config: Any, store: str, args: argparse
     user_field = args.init if args.init not in (None, "height", "heat") else None
     if api is not None:
         api.meanwhile(lambda: warm_imports(config, spec))
-    with cache_settings(store):
-        def job() -> dict[str, Any]:
-            """The flow, run once the API answers."""
-            with api_serving(api):
-                return slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store, user_field=user_field)
+    def job() -> dict[str, Any]:
+        """The flow, run once the API answers."""
+        with api_serving(api):
+            return slice_flow(spec=spec, out_dir=str(out_dir), config=config, store=store, user_field=user_field)
 
-        summary = with_api_retry(job)
+    summary = with_api_retry(job)
     print_summary(summary)
     return 0
 

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.cli.options import ArgumentParser, add_slicing_options, build_config, cli_names, run_in_out_dir
-from neuralslicer.flows.settings import cache_settings, prefect_environment, with_api_retry
+from neuralslicer.flows.settings import prefect_environment, with_api_retry
 from neuralslicer.errors import InputError
 
 
@@ -78,7 +78,7 @@ def cmd_study(args: argparse.Namespace) -> int:
             run = lambda: batch_study(models=list(args.models), **common)  # noqa: E731
         if args.dask not in (None, "local"):   # before a server starts: every worker shares the store and the folder
             check_cluster(args.dask, {"--store": store, "--out": str(out_dir)}, api_url=None)
-        with cache_settings(store), study_api(args.dask) as api_url:
+        with study_api(args.dask) as api_url:
             if api_url is not None:
                 print(f"Prefect API of this study (handed to its Dask workers): {api_url}", flush=True)
             study = with_api_retry(run)

@@ -1,6 +1,7 @@
 """``neuralslicer explain RUN``: for each step of a run, whether it reused a result and, where it computed one, why.
 
-A step's output group records what its digest covers (``key``: the step's code version, its parameters with inputs
+The store is the steps' one cache: a task whose group is there computes nothing (its state is ``Cached``). A step's
+output group records what its digest covers (``key``: the step's code version, its parameters with inputs
 by digest, its inputs' groups), which flow run made it (``made``; ``tasks/common.py``) and when (``written_at``). A
 step of the run whose group another flow run made reused that result. A step whose group this run made computed it; the
 reason is what differs from the step's latest earlier result for the same model in the same store: the code
@@ -56,9 +57,8 @@ def _reason(store: ArtifactStore, task: dict[str, Any], flow_run: str) -> StepRe
     made = attrs.get("made") or {}
     if made.get("flow_run") != flow_run:
         when = f" at {attrs['written_at']}" if attrs.get("written_at") else ""
-        how = "Prefect's cache record" if state == "Cached" else "the store (Prefect had no cache record of it)"
         source = f"flow run {made['flow_run']}{when}" if made.get("flow_run") else "an earlier run"
-        return StepReason(task["task"], group, state, False, f"reused from {how}: made by {source}")
+        return StepReason(task["task"], group, state, False, f"reused from the store: made by {source}")
     why = _why_computed(store, group, attrs)
     if attrs.get("from_cage_cache"):
         why = f"taken from the machine's cage cache, not built; {why}"

@@ -1,12 +1,11 @@
-"""Prefect settings of a run: quiet local defaults and task results (cache records) beside the store."""
+"""Prefect settings of a run: quiet local defaults (the store is the steps' cache: Prefect persists no results)."""
 from __future__ import annotations
 
 import logging
 import os
 import re
-from pathlib import Path
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from neuralslicer.errors import InputError, NeuralSlicerError
 
@@ -23,7 +22,6 @@ def prefect_environment() -> None:
     # PREFECT_LOGGING_LEVEL (INFO unless set), so the API handler sends the run's INFO lines to the server
     os.environ.setdefault(CONSOLE_LEVEL, "WARNING")
     os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
-    os.environ.setdefault("PREFECT_RESULTS_PERSIST_BY_DEFAULT", "true")
     # the local API server needs ~6 s on a quiet machine and far longer on a loaded one (20 s by default)
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(API_STARTUP_TIMEOUT_S))
     quiet_interrupts()
@@ -92,24 +90,6 @@ def with_api_retry(job: Callable[[], T], attempts: int = 2) -> T:
         f"Prefect's local API server did not start within {timeout} s, {attempts} times (a loaded machine?): "
         "raise PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS or point PREFECT_API_URL at a running server "
         "(prefect server start), then run the same command again") from failure
-
-
-def result_storage_dir(store: str) -> Path:
-    """Where Prefect persists task results (cache records) for a store: beside it on local disk."""
-    if "://" in store and not store.startswith("file://"):
-        return Path.home() / ".cache" / "neuralslicer" / "prefect-results"
-    store_path = Path(store.removeprefix("file://")).resolve()
-    return store_path.parent / f".{store_path.name}.prefect-results"
-
-
-def cache_settings(store: str) -> Any:
-    """Prefect settings for a run on this store: task results (the cache records) persisted beside the store."""
-    # imported here: prefect_environment() must run before Prefect is first imported (logging set-up)
-    from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, PREFECT_RESULTS_PERSIST_BY_DEFAULT, temporary_settings
-
-    results = result_storage_dir(store)
-    results.mkdir(parents=True, exist_ok=True)
-    return temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: results, PREFECT_RESULTS_PERSIST_BY_DEFAULT: True})
 
 
 def artifact_key(text: str) -> str:

@@ -251,7 +251,7 @@ def publish_report(name: str, out_dir: str) -> str | None:
     return key
 
 
-@flow(name="neuralslicer-slice", flow_run_name=slice_run_name)
+@flow(name="neuralslicer-slice", flow_run_name=slice_run_name, persist_result=False)
 def slice_flow(
     spec: ModelSpec, out_dir: str, config: SliceConfig, store: str, user_field: str | None = None
 ) -> dict[str, Any]:

@@ -12,7 +12,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
 from neuralslicer.flows.cluster import annotated, branch_resources, check_cluster, needs_gpu
-from neuralslicer.flows.settings import cache_settings, quiet_input_errors
+from neuralslicer.flows.settings import quiet_input_errors
 from neuralslicer.flows.study_server import configured_api_url
 from neuralslicer.flows.branch import Branch, load_branch_spec, make_user_field, study_branch
 from neuralslicer.flows.study_report import write_study_outputs
@@ -344,8 +344,7 @@ def slice_model(model: str, out_dir: str, up: UpAxis | None = None, units: Units
         store_root = ArtifactStore(store or default_store(out)).root
     except InputError as exc:
         return failed_on_input(exc)
-    with cache_settings(store_root):
-        return slice_flow(spec=spec, out_dir=str(out), config=cfg, store=store_root)
+    return slice_flow(spec=spec, out_dir=str(out), config=cfg, store=store_root)
 
 
 @flow(name="neuralslicer-study-methods")

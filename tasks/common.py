@@ -1,4 +1,5 @@
-"""What every pipeline task shares: a cache key from input digests and parameters, and a deterministic output path."""
+"""What every pipeline task shares: an output path keyed by the digest of its inputs, parameters and code version, and
+the store as its one cache (a task whose group is there computes nothing and ends ``Cached``)."""
 from __future__ import annotations
 
 import functools
@@ -7,14 +8,11 @@ import json
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, TypeVar
 
 from prefect import task
-from prefect.context import TaskRunContext
-from prefect.serializers import Serializer
-from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
-from prefect.states import State
+from prefect.cache_policies import NO_CACHE
+from prefect.states import Completed, State
 
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.provenance import package_versions
@@ -22,6 +20,8 @@ from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore, canoni
 from neuralslicer.tasks.progress import run_logger, say
 
 T = TypeVar("T")
+#: the name of the state of a task whose output the store already held (Prefect's own name for a cache hit)
+CACHED = "Cached"
 
 
 def keyed(parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -102,56 +102,10 @@ class PipelineStep:
         finally:
             release_freed_memory()   # what the step freed goes back to the kernel (neuralslicer/allocator.py)
 
-    def cache_key(self, context: TaskRunContext, parameters: dict[str, Any]) -> str:
-        """Prefect cache key: the step, the store it writes to and its output digest (stores that share a
-        results folder, as remote ones do, never see each other's records)."""
-        out = self.output(parameters)
-        return f"{self.step}-{digest('store', out.store, length=8)}-{out.digest}"
-
-
-class RefSerializer(Serializer):
-    """Task results as JSON: a pipeline task returns an ArtifactRef (three strings), and reading one back builds
-    nothing else, so a cache record planted beside a shared store cannot run code (pickle could)."""
-
-    type: Literal["neuralslicer-ref"] = "neuralslicer-ref"
-
-    def dumps(self, obj: ArtifactRef) -> bytes:
-        """The ref's three fields as JSON."""
-        if not isinstance(obj, ArtifactRef):
-            raise TypeError(f"a pipeline task returns an ArtifactRef, not {type(obj).__name__}")
-        return json.dumps({"store": obj.store, "path": obj.path, "digest": obj.digest}).encode()
-
-    def loads(self, blob: bytes) -> ArtifactRef:
-        """An ArtifactRef from its JSON, refusing anything else."""
-        data = json.loads(blob)
-        if not (isinstance(data, dict) and set(data) == {"store", "path", "digest"}
-                and all(isinstance(v, str) for v in data.values())):
-            raise ValueError("not a neuralslicer task result")
-        return ArtifactRef(**data)
-
-
-def record_is_ours(path: Path) -> bool:
-    """True when the cache record at ``path`` is absent or was written with :class:`RefSerializer` (a record
-    naming another serializer, pickle above all, is never read)."""
-    if not path.exists():
-        return True
-    try:
-        meta = json.loads(path.read_bytes())["metadata"]
-        return meta["serializer"]["type"] == RefSerializer().type
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
-
 
 def run_step(task_: Any, **parameters: Any) -> State:
-    """Run a pipeline task; when its output is missing from the store, or its cache record is not one this
-    package wrote (not JSON by RefSerializer: never unpickled), bypass the record (the task rewrites it)."""
-    step: PipelineStep = task_.pipeline
-    record = Path(PREFECT_LOCAL_STORAGE_PATH.value()) / step.cache_key(None, parameters)
-    if not record_is_ours(record):
-        say(f"{step.step}: ignoring a cache record not written by neuralslicer ({record}); recomputing the reference")
-        task_ = task_.with_options(refresh_cache=True)
-    elif not step.done(parameters):
-        task_ = task_.with_options(refresh_cache=True)
+    """Run a pipeline task and return its final state: ``Cached`` when the store already held its output (the task
+    then does no work), ``Completed`` when it computed it."""
     return task_(**parameters, return_state=True)
 
 
@@ -183,7 +137,8 @@ def pipeline_task(
     `(arrays, attrs)`; the wrapper writes them atomically as the group `out.path`, with the wall time.
     `version` is the step's code version: bump it when the step's output for the same inputs changes (it enters the
     cache key, so older artifacts are not reused). Parameters named in `exclude` do not enter the cache key (e.g. file paths whose content is hashed
-    in another parameter). The task is idempotent: when its output group exists it does no work. `isolate`: for the
+    in another parameter). The task is idempotent: when its output group exists it does no work and its state is ``Cached`` (the store is
+    the cache; Prefect keeps no record of the result). `isolate`: for the
     call's parameters, whether the step runs in a process of its own (``neuralslicer/tasks/isolate.py``).
     """
 
@@ -193,10 +148,12 @@ def pipeline_task(
         pipeline = PipelineStep(step, version, public, exclude, valid, fn, isolate)
 
         @functools.wraps(fn)
-        def body(*args: Any, **kwargs: Any) -> ArtifactRef:
+        def body(*args: Any, **kwargs: Any) -> ArtifactRef | State:
             params = pipeline.bind(public.bind(*args, **kwargs).arguments)
             out = pipeline.output(params)
-            if pipeline.isolate is not None and pipeline.isolate(params) and not pipeline.done(params):
+            if pipeline.done(params):    # the store decides: its group is there, so nothing is computed
+                return Completed(name=CACHED, data=out, message=f"{step}: reused {out.path} from the store")
+            if pipeline.isolate is not None and pipeline.isolate(params):
                 from neuralslicer.tasks.isolate import run_isolated
 
                 run_isolated(fn.__module__, fn.__name__, out, params, made_by(), run_logger())
@@ -206,8 +163,8 @@ def pipeline_task(
 
         body.__signature__ = public  # type: ignore[attr-defined]
         del body.__wrapped__
-        options = {"persist_result": True, "result_serializer": RefSerializer(), "cache_key_fn": pipeline.cache_key,
-                   "name": step, **task_options}
+        # no Prefect cache record: the store's groups are the one cache (the body returns a Cached state)
+        options = {"cache_policy": NO_CACHE, "persist_result": False, "name": step, **task_options}
         pipeline_task_ = task(body, **options)
         pipeline_task_.pipeline = pipeline
         return pipeline_task_

@@ -37,7 +37,7 @@ def test_explain_says_what_a_run_reused_and_what_made_each_step_compute(prefect_
     assert first["layers"]["reason"] == "no earlier result of this step for this model in the store"
     again = _explain(capsys, slice_("b"))   # the same inputs, another folder: only the export is new
     assert [t for t, s in again.items() if s["computed"]] == ["export"]
-    assert again["layers"]["reason"].startswith("reused from Prefect's cache record: made by flow run ")
+    assert again["layers"]["reason"].startswith("reused from the store: made by flow run ")
     thicker = _explain(capsys, slice_("c", layer_height=0.9))
     computed = {t for t, s in thicker.items() if s["computed"]}
     assert {"layers", "toolpaths", "motion", "program", "export"} <= computed
