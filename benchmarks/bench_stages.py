@@ -115,7 +115,7 @@ def core_stages(name: str, tmp: Path) -> tuple[list[dict], dict]:
             with Stage(rows, LABELS.get(step, step)):
                 return super()._timed(step, make)
 
-    steps = StagedSteps(cfg.s3, cfg.s3_oneshot)
+    steps = StagedSteps()
     chain = run_chain(steps, spec, cfg)
     cage, motion = chain.cage, chain.printed.motion
     tp, metrics = motion.toolpaths, motion.metrics
@@ -136,7 +136,8 @@ def core_stages(name: str, tmp: Path) -> tuple[list[dict], dict]:
                      "added_rss_mb": whole["added_rss_mb"], "limit_s": limit})
     speed = disk_write_mb_s(tmp)
     gcode = next(r for r in rows if r["stage"] == LABELS["program"])
-    gcode.update(bytes=len(chain.program), limit_s=len(chain.program) / 2**20 / speed)
+    size = len(bytes(chain.program))
+    gcode.update(bytes=size, limit_s=size / 2**20 / speed)
     with Stage(rows, "figures (layer preview, bead thickness)"):
         plot_layers_3d(tmp / "layers.png", chain.printed.layers.meshes)
         plot_thickness_map(tmp / "beads.png", tp.xyz, tp.thickness, tp.extrude, motion.program.profile.nozzle.bead_thickness_mm)

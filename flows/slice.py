@@ -10,25 +10,20 @@ from typing import Any
 from prefect import flow, get_run_logger, tags
 from prefect.states import State
 
-from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
-from neuralslicer.cage import CageConfig
-from neuralslicer.config import SampleConfig, SliceConfig
-from neuralslicer.layers import LayerConfig
-from neuralslicer.model.spec import ModelSpec, model_name, spec_digest
-from neuralslicer.motion.profile import MachineProfile
-from neuralslicer.pipeline import FieldCall, run_chain
+from neuralslicer.config import SliceConfig
+from neuralslicer.model.spec import ModelSpec, model_name
+from neuralslicer.motion.output import print_hits
+from neuralslicer.pipeline import run_chain
 from neuralslicer.provenance import add_to_metrics, provenance
 from neuralslicer.report_embed import embed_figures
-from neuralslicer.toolpath.config import ToolpathConfig
+from neuralslicer.step_table import step
 from neuralslicer.flows.settings import artifact_key
 from neuralslicer.storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
-from neuralslicer.tasks.codec import n_collisions, n_platform_collisions, read_part_collisions, store_user_field
+from neuralslicer.tasks.codec import StoredMotion, store_user_field
 from neuralslicer.tasks.common import run_step
 from neuralslicer.tasks.export import export_task
-from neuralslicer.tasks.fea import fea_task, printed_fea_task, stress_samples_task, verify_task
 from neuralslicer.tasks.provenance import record_provenance
-from neuralslicer.tasks.steps import (cage_task, field_blend_task, field_task, layers_task, model_task, motion_task, program_task,
-                         s3_field_task, s3_oneshot_field_task, samples_task, surface_task, toolpaths_task)
+from neuralslicer.tasks.steps import TASKS
 
 
 @dataclass
@@ -88,91 +83,24 @@ def device_tags(device: str | None) -> tuple[str, ...]:
 
 @dataclass
 class TaskSteps:
-    """The pipeline's steps as cached Prefect tasks on one store: each call runs a task and returns its output ref."""
+    """The table's steps as Prefect tasks on one store (``tasks/steps.py``): each call runs the step's task and
+    returns its output ref."""
 
     log: RunLog
     store: str
-    s3: S3DeformConfig | None = None
-    s3_oneshot: S3Config | None = None
 
-    def _run(self, task: Any, **params: Any) -> ArtifactRef:
-        """Run one task on this store."""
-        return self.log.run(task, store=self.store, **params)
-
-    def model(self, spec: ModelSpec) -> ArtifactRef:
-        """The model step, named after the spec's file and keyed by its content."""
-        return self._run(model_task, name=model_name(spec), spec=spec, content=spec_digest(spec))
-
-    def surface(self, model: ArtifactRef) -> ArtifactRef:
-        """The surface step."""
-        return self._run(surface_task, model=model)
-
-    def samples(self, model: ArtifactRef, config: SampleConfig) -> ArtifactRef:
-        """The samples step."""
-        return self._run(samples_task, model=model, config=config)
-
-    def cage(self, model: ArtifactRef, samples: ArtifactRef, config: CageConfig) -> ArtifactRef:
-        """The cage step."""
-        return self._run(cage_task, model=model, samples=samples, config=config)
-
-    def fea(self, model: ArtifactRef) -> ArtifactRef:
-        """The isotropic FEA step."""
-        return self._run(fea_task, model=model)
-
-    def stress_samples(self, model: ArtifactRef, fea: ArtifactRef) -> ArtifactRef:
-        """The stress samples step."""
-        return self._run(stress_samples_task, model=model, fea=fea)
-
-    def field(self, call: FieldCall[ArtifactRef]) -> ArtifactRef:
-        """The field step of the call's method: the blend, an S3 field or the neural one (refined, warm-started)."""
-        inputs = call.inputs
-        common = {"model": inputs.model, "cage": inputs.cage, "samples": inputs.samples,
-                  "stress": inputs.stress_samples, "objectives": list(call.objectives)}
-        if call.method == "blend":
-            return self._run(field_blend_task, cage=inputs.cage, field=call.blended, planar=call.planar)
-        if call.method == "s3":
-            return self._run(s3_field_task, **common, config=self.s3)
-        if call.method == "s3_oneshot":
-            with tags(*device_tags(self.s3_oneshot.device if self.s3_oneshot is not None else "auto")):
-                return self._run(s3_oneshot_field_task, **common, config=self.s3_oneshot)
-        refine = {"refine_prints": list(call.refine_on)} if call.refine_on else {}
-        if call.warm_start is not None:
-            refine["warm_start"] = call.warm_start
-        with tags(*device_tags(call.neural.device if call.objectives else None)):
-            return self._run(field_task, **common, config=call.neural, user_field=inputs.user, **refine)
-
-    def layers(self, model: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, config: LayerConfig) -> ArtifactRef:
-        """The layers step."""
-        return self._run(layers_task, model=model, cage=cage, field=field, config=config)
-
-    def toolpaths(self, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig, machine: MachineProfile,
-                  t_max: float, fea: ArtifactRef | None) -> ArtifactRef:
-        """The toolpaths step."""
-        return self._run(toolpaths_task, model=model, layers=layers, config=config, machine=machine, t_max=t_max, fea=fea)
-
-    def motion(self, model: ArtifactRef, toolpaths: ArtifactRef, config: ToolpathConfig, machine: MachineProfile
-               ) -> ArtifactRef:
-        """The motion step."""
-        return self._run(motion_task, model=model, toolpaths=toolpaths, config=config, machine=machine)
+    def run(self, name: str, **parameters: Any) -> ArtifactRef:
+        """Run step ``name``'s task on this store (with the parameters that key it, and the GPU tag of a step that
+        optimises on CUDA)."""
+        s = step(name)
+        if s.key_of is not None:
+            parameters = {**parameters, **s.key_of(parameters)}
+        with tags(*device_tags(s.device(parameters) if s.device is not None else None)):
+            return self.log.run(TASKS[name], store=self.store, **parameters)
 
     def hits(self, motion: ArtifactRef) -> tuple[int, int, int]:
         """Collisions of a stored print: all, of the head at a waypoint, below the platform."""
-        return n_collisions(motion), len(read_part_collisions(motion)[0]), n_platform_collisions(motion)
-
-    def program(self, motion: ArtifactRef) -> ArtifactRef:
-        """The program step."""
-        return self._run(program_task, motion=motion)
-
-    def printed_fea(self, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
-                    motion: ArtifactRef) -> ArtifactRef:
-        """The FEA of the printed part."""
-        return self._run(printed_fea_task, model=model, fea=fea, cage=cage, field=field, motion=motion)
-
-    def verify(self, model: ArtifactRef, fea: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
-               motion: ArtifactRef | None, layers: LayerConfig, toolpaths: ToolpathConfig) -> ArtifactRef:
-        """The verification step."""
-        return self._run(verify_task, model=model, fea=fea, cage=cage, field=field, motion=motion,
-                         layer_config=layers, toolpath_config=toolpaths)
+        return print_hits(StoredMotion(motion))
 
     def note(self, message: str) -> None:
         """A warning in the flow run's log."""
@@ -206,7 +134,7 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     log = RunLog()
     name = model_name(spec)
     user = store_user_field(store, name, user_field) if user_field else None
-    c = run_chain(TaskSteps(log, store, config.s3, config.s3_oneshot), spec, config, user)
+    c = run_chain(TaskSteps(log, store), spec, config, user)
     p = c.printed
     log.run(export_task, store=store, out_dir=out_dir, model=c.model, surface=c.surface, samples=c.samples, cage=c.cage,
             field=p.field, layers=p.layers, motion=p.motion, stress=c.stress_samples, verify=c.verify,

@@ -10,7 +10,6 @@ import numpy as np
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage
 from neuralslicer.model.solid import Solid
-from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.scalar_field import ScalarField
 
 if TYPE_CHECKING:  # types only: the FEA's scipy.sparse and the samples' KD-tree are not needed to read a field
@@ -67,15 +66,3 @@ def field_of(cage: Cage, record: Record) -> ScalarField:
 def history_of(record: Record) -> dict[str, np.ndarray]:
     """The optimisation's per-step history in a field record (empty for the height field)."""
     return {k.split("/", 1)[1]: v for k, v in record[0].items() if k.startswith("history/")}
-
-
-def optimised_record(cage: Cage, samples: SurfaceSamples, stress: StressSamples | None, objectives: list[str],
-                     config: NeuralConfig, solid: Solid, **options: Any) -> Record:
-    """The neural field (``optimise_for_solid``'s options: refine, warm_start, user field, callbacks) as a record;
-    the height field without objectives."""
-    if not objectives:
-        return height_record(cage)
-    from neuralslicer.neural.optimise import optimise_for_solid   # torch: only when a field is optimised
-
-    return optimise_for_solid(solid, cage.vertices, cage.tets, samples, stress, objectives, config,
-                              **options).to_arrays()

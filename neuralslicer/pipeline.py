@@ -1,23 +1,22 @@
 """The slicing chain, written once (SPEC steps 1-12): model -> surface -> samples -> cage -> [FEA -> T] -> field ->
 layers -> toolpaths -> motion -> program, with the collision policy's attempts and the strength rounds.
 
-The chain runs on any :class:`Steps`: :class:`neuralslicer.in_process.InProcessSteps` calls the core in this process
-(a notebook, a benchmark, :func:`neuralslicer.in_process.slice_model`); the Prefect flow's steps run each as a
-cached task and hand store references along. Handles (``H``) are whatever the steps pass between them.
+The chain runs on any :class:`Steps`: each call runs one step of the table (:mod:`neuralslicer.step_table`) by its
+name. :class:`neuralslicer.in_process.InProcessSteps` calls the step's core function in this process (a notebook, a
+benchmark, :func:`neuralslicer.in_process.slice_model`); the Prefect flow's steps run each as a task on a store and
+hand store references along. Handles (``H``) are whatever the steps pass between them.
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Generic, Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
-from neuralslicer.cage import CageConfig
 from neuralslicer.collision_policy import CollisionPolicy, FieldRequest, PrintAttempt, run_policy
-from neuralslicer.config import SampleConfig, SliceConfig
+from neuralslicer.config import SliceConfig
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.motion.profile import MachineProfile, load_profile
-from neuralslicer.neural.config import NeuralConfig
 from neuralslicer.toolpath.config import ToolpathConfig
 
 H = TypeVar("H")
@@ -51,79 +50,59 @@ class FieldCall(Generic[H]):
     runners follow (:func:`field_call`).
 
     method : "blend" (the field ``blended`` toward planar layers by ``planar``), "s3", "s3_oneshot" or "neural" (the
-    height field without objectives); refine_on : the motions of the prints whose collisions refine L_GC's pool;
-    warm_start : the field whose weights start the optimisation.
+    height field without objectives); config : the method's settings (NeuralConfig, S3DeformConfig or S3Config);
+    refine_on : the motions of the prints whose collisions refine L_GC's pool; warm_start : the field whose weights
+    start the optimisation.
     """
 
     method: str
     inputs: FieldInputs[H]
     objectives: tuple[str, ...]
-    neural: NeuralConfig | None = None
+    config: Any = None
     planar: float = 0.0
     blended: H | None = None
     refine_on: tuple[H, ...] = ()
     warm_start: H | None = None
 
 
-def field_call(request: FieldRequest, inputs: FieldInputs[H], earlier: Sequence[Printed[H]]) -> FieldCall[H]:
+def field_call(request: FieldRequest, inputs: FieldInputs[H], earlier: Sequence[Printed[H]],
+               baselines: dict[str, Any] | None = None) -> FieldCall[H]:
     """The field a request asks for (``refine_on``, ``warm_start`` and ``blend`` index ``earlier``): a blend before
-    any method, then the request's method."""
+    any method, then the request's method (``baselines``: the settings of the S3 methods, by method)."""
     if request.blend is not None:
         planar, of = request.blend
         return FieldCall("blend", inputs, request.objectives, planar=planar, blended=earlier[of].field)
     if request.method in ("s3", "s3_oneshot"):
-        return FieldCall(request.method, inputs, request.objectives)
+        return FieldCall(request.method, inputs, request.objectives, (baselines or {}).get(request.method))
     return FieldCall("neural", inputs, request.objectives, request.neural,
                      refine_on=tuple(earlier[i].motion for i in request.refine_on),
                      warm_start=earlier[request.warm_start].field if request.warm_start is not None else None)
 
 
+def field_parameters(call: FieldCall[H]) -> tuple[str, dict[str, Any]]:
+    """The step that computes a call's field and its parameters (the same for every runner: its cache key)."""
+    i = call.inputs
+    if call.method == "blend":
+        return "field_blend", {"cage": i.cage, "field": call.blended, "planar": call.planar}
+    common = {"model": i.model, "cage": i.cage, "samples": i.samples, "stress": i.stress_samples,
+              "objectives": list(call.objectives), "config": call.config}
+    if call.method in ("s3", "s3_oneshot"):
+        return f"field_{call.method}", common
+    starts: dict[str, Any] = {"refine_prints": list(call.refine_on)} if call.refine_on else {}
+    if call.warm_start is not None:
+        starts["warm_start"] = call.warm_start
+    return "field", {**common, "user_field": i.user, **starts}
+
+
 class Steps(Protocol[H]):
-    """The pipeline's steps, each one call; the chain decides the order and what to do after a colliding print."""
+    """Runs the steps of the table (:data:`neuralslicer.step_table.STEPS`); the chain decides the order and what to do
+    after a colliding print."""
 
-    def model(self, spec: ModelSpec) -> H:
-        """Step 1: the implicit solid H of the spec's files."""
-
-    def surface(self, model: H) -> H:
-        """The boundary surface H = 0 of the solid, its genus, volume and bounds."""
-
-    def samples(self, model: H, config: SampleConfig) -> H:
-        """Step 2: surface samples B."""
-
-    def cage(self, model: H, samples: H, config: CageConfig) -> H:
-        """Step 3: the cage."""
-
-    def fea(self, model: H) -> H:
-        """The isotropic FEA of the spec's load case."""
-
-    def stress_samples(self, model: H, fea: H) -> H:
-        """Stress samples T from an FEA."""
-
-    def field(self, call: FieldCall[H]) -> H:
-        """Steps 4-9: the field of a call (:func:`field_call`)."""
-
-    def layers(self, model: H, cage: H, field: H, config: LayerConfig) -> H:
-        """Step 10: curved layers."""
-
-    def toolpaths(self, model: H, layers: H, config: ToolpathConfig, machine: MachineProfile, t_max: float,
-                  fea: H | None) -> H:
-        """Step 11: toolpaths on every layer (the infill following ``fea``'s stress when given)."""
-
-    def motion(self, model: H, toolpaths: H, config: ToolpathConfig, machine: MachineProfile) -> H:
-        """Step 12: the exact collision check, travel lifts, tilts and the machine program."""
+    def run(self, step: str, **parameters: Any) -> H:
+        """The output of step ``step`` (its name in the table) for these parameters (its task's, by name)."""
 
     def hits(self, motion: H) -> tuple[int, int, int]:
         """(colliding waypoints, those whose head hits material or the platform, those below the platform)."""
-
-    def program(self, motion: H) -> H:
-        """The machine program as G-code."""
-
-    def printed_fea(self, model: H, fea: H, cage: H, field: H, motion: H) -> H:
-        """The anisotropic FEA of the part as printed."""
-
-    def verify(self, model: H, fea: H, cage: H, field: H, motion: H | None, layers: LayerConfig,
-               toolpaths: ToolpathConfig) -> H:
-        """Strain of the printed part against planar layers (``--verify``)."""
 
     def note(self, message: str) -> None:
         """A warning for the run's log."""
@@ -176,19 +155,27 @@ class Printer(Generic[H]):
     toolpath: ToolpathConfig
     machine: MachineProfile
     infill_fea: H | None = None
+    baselines: dict[str, Any] = field(default_factory=dict)
+
+    def field(self, call: FieldCall[H]) -> H:
+        """The field of a call."""
+        step, parameters = field_parameters(call)
+        return self.steps.run(step, **parameters)
 
     def print_field(self, field_: H, stress_of: H | None = None) -> Printed[H]:
         """The field's layers, toolpaths (the infill following ``stress_of``'s stress, by default the isotropic FEA's,
         when the infill follows the stress) and motion."""
         s, model = self.steps, self.inputs.model
-        layers = s.layers(model, self.inputs.cage, field_, self.layer_config)
+        layers = s.run("layers", model=model, cage=self.inputs.cage, field=field_, config=self.layer_config)
         fea = (stress_of or self.infill_fea) if self.infill_fea is not None else None
-        toolpaths = s.toolpaths(model, layers, self.toolpath, self.machine, self.layer_config.t_max, fea)
-        return Printed(field_, layers, toolpaths, s.motion(model, toolpaths, self.toolpath, self.machine))
+        toolpaths = s.run("toolpaths", model=model, layers=layers, config=self.toolpath, machine=self.machine,
+                          t_max=self.layer_config.t_max, fea=fea)
+        motion = s.run("motion", model=model, toolpaths=toolpaths, config=self.toolpath, machine=self.machine)
+        return Printed(field_, layers, toolpaths, motion)
 
     def attempt(self, request: FieldRequest, earlier: Sequence[Printed[H]]) -> tuple[Printed[H], PrintAttempt]:
         """Compute and print the field a request asks for; what its print hit."""
-        printed = self.print_field(self.steps.field(field_call(request, self.inputs, earlier)))
+        printed = self.print_field(self.field(field_call(request, self.inputs, earlier, self.baselines)))
         n, head, platform = self.steps.hits(printed.motion)
         if n:
             self.steps.note(f"{request.label}: {n} nozzle collisions ({head} of the head at a waypoint, {platform} "
@@ -200,16 +187,17 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
     """The whole slice on these steps: the fields the collision policy asks for until one prints clean (or the
     policy gives up), the strength rounds, the verification, and the kept print's program."""
     objectives = config.objectives_for(spec)
-    model = steps.model(spec)
-    surface, samples = steps.surface(model), steps.samples(model, config.samples)
-    cage = steps.cage(model, samples, config.cage)
-    fea = steps.fea(model) if config.needs_fea(spec) else None
-    samples_t = steps.stress_samples(model, fea) if "sr" in objectives else None
+    model = steps.run("model", spec=spec)
+    surface = steps.run("surface", model=model)
+    samples = steps.run("samples", model=model, config=config.samples)
+    cage = steps.run("cage", model=model, samples=samples, config=config.cage)
+    fea = steps.run("fea", model=model) if config.needs_fea(spec) else None
+    samples_t = steps.run("stress_samples", model=model, fea=fea) if "sr" in objectives else None
     machine, toolpath = load_profile(config.machine), config.toolpath_for(spec)
     neural = config.neural.with_head(machine.nozzle, config.toolpath.line_width, toolpath.collision_tilt_deg
                                      ).with_tilt_bound(machine.printing_direction_bound_deg())
     printer = Printer(steps, FieldInputs(model, cage, samples, samples_t, user), config.layers, toolpath, machine,
-                      fea if toolpath.infill == "stress" else None)
+                      fea if toolpath.infill == "stress" else None, {"s3": config.s3, "s3_oneshot": config.s3_oneshot})
     outputs, attempts, kept = run_policy(CollisionPolicy.for_config(config, neural, objectives), printer.attempt)
     printed, request = outputs[kept], attempts[kept].request
     rounds: list[RoundPrint[H]] = []
@@ -217,11 +205,12 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
         printed, rounds = strength_rounds(printer, fea, printed, request, config.sr_rounds)
     verify = None
     if config.verify:
-        verify = steps.verify(model, fea, cage, printed.field,
-                              None if config.verify_tangents == "ideal" else printed.motion, config.layers, toolpath)
+        verify = steps.run("verify", model=model, fea=fea, cage=cage, field=printed.field,
+                           motion=None if config.verify_tangents == "ideal" else printed.motion,
+                           layer_config=config.layers, toolpath_config=toolpath)
     listed = [TriedPrint(a.request.label, o.field, o.motion) for a, o in zip(attempts, outputs)]
-    return Chain(model, surface, samples, cage, fea, samples_t, printed, steps.program(printed.motion), verify,
-                 listed if len(listed) > 1 else [], rounds)
+    return Chain(model, surface, samples, cage, fea, samples_t, printed, steps.run("program", motion=printed.motion),
+                 verify, listed if len(listed) > 1 else [], rounds)
 
 
 def strength_rounds(printer: Printer[H], fea: H, current: Printed[H], request: FieldRequest, n_rounds: int
@@ -233,15 +222,17 @@ def strength_rounds(printer: Printer[H], fea: H, current: Printed[H], request: F
     s, inputs = printer.steps, printer.inputs
     rounds: list[RoundPrint[H]] = []
     for r in range(1, n_rounds + 1):
-        printed = s.printed_fea(inputs.model, fea, inputs.cage, current.field, current.motion)
+        printed = s.run("fea_printed", model=inputs.model, fea=fea, cage=inputs.cage, field=current.field,
+                        motion=current.motion)
         rounds.append(RoundPrint(f"round {r}" + (" (isotropic tau_max, the paper)" if r == 1 else ""),
                                     current.field, current.motion, printed))
         if r == n_rounds:
             break
-        samples_t = s.stress_samples(inputs.model, printed)
+        samples_t = s.run("stress_samples", model=inputs.model, fea=printed)
         again = FieldRequest(f"strength round {r + 1}", "strength", request.method, request.neural, request.objectives,
                              warm_start=0)
-        field_ = s.field(field_call(again, FieldInputs(inputs.model, inputs.cage, inputs.samples, samples_t), [current]))
+        field_ = printer.field(field_call(again, FieldInputs(inputs.model, inputs.cage, inputs.samples, samples_t),
+                                         [current]))
         candidate = printer.print_field(field_, printed)
         n = s.hits(candidate.motion)[0]
         if n:

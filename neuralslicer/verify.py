@@ -10,6 +10,7 @@ degenerate.
 """
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import Any, Callable
 
 import numpy as np
@@ -19,7 +20,7 @@ from neuralslicer.errors import InputError
 from neuralslicer.fea.element import rotate_D, transversely_isotropic_D
 from neuralslicer.fea.grid import SolidLike, voxelize
 from neuralslicer.fea.samples import stress_field, top_stress_indices
-from neuralslicer.fea.solver import FEAResult, run_fea, solve_on_grid
+from neuralslicer.fea.solver import FEAResult, PrintedFEA, run_fea, solve_on_grid
 from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import LayerConfig, slice_layers
 from neuralslicer.metrics import strength_angles
@@ -263,18 +264,18 @@ def printed_fea(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, toolpat
     return verify_layers(solid, fea_spec, _field_lpd(field), tangent_at=printed_tangents(toolpaths), reference=reference)
 
 
-def printed_fea_record(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, toolpaths: Toolpaths,
-                       reference: FEAResult) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """The FEA of the printed part (:func:`printed_fea`) as the store keeps it: its arrays like the isotropic FEA's (a
-    strength round samples its T from it) with ``turn/*`` (:func:`stress_turn`), the print's strain figures and how
-    far tau_max turned."""
+def printed_fea_of(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, toolpaths: Toolpaths,
+                   reference: FEAResult) -> PrintedFEA:
+    """The FEA of the printed part (:func:`printed_fea`) with how far tau_max turned (:func:`stress_turn`) and the
+    print's strain figures: what the store keeps of it, and what a strength round samples its T from."""
     printed = printed_fea(solid, fea_spec, field, toolpaths, reference)
-    arrays, attrs = printed["result"].to_arrays()
-    turn = stress_turn(reference, printed["result"], field, fea_spec.top_fraction)
+    result = printed["result"]
+    turn = stress_turn(reference, result, field, fea_spec.top_fraction)
     figures = {k: float(printed[k]) for k in ("max_strain", "max_strain_p99", "max_displacement_mm")}
     figures.update(tau_turn_median_deg=float(np.median(turn["tau_turn_deg"])),
                    tau_turn_p90_deg=float(np.percentile(turn["tau_turn_deg"], 90)))
-    return {**arrays, **{f"turn/{k}": v for k, v in turn.items()}}, {**attrs, **figures}
+    kept = {f.name: getattr(result, f.name) for f in fields(FEAResult)}
+    return PrintedFEA(**kept, figures=figures, turn=turn)
 
 
 def stress_turn(reference: FEAResult, printed: FEAResult, field: ScalarField, top_fraction: float = 0.10

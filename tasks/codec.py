@@ -2,19 +2,18 @@
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from neuralslicer.cage import Cage
-from neuralslicer.errors import InputError
 from neuralslicer.field_step import history_of
 from neuralslicer.fea.samples import StressSamples
-from neuralslicer.fea.spec import FEASpec
 from neuralslicer.layers import Layers
-from neuralslicer.model.solid import Solid
+from neuralslicer.model.solid import Model, Solid
 from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.pipeline import RoundPrint, TriedPrint
@@ -22,13 +21,14 @@ from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
+from neuralslicer.storage.layout import group_kind
 
 P = TypeVar("P", bound=ProgramMoves)
 
 if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) only when a run is exported
     import trimesh
 
-    from neuralslicer.fea.solver import FEAResult
+    from neuralslicer.fea.solver import FEAResult, PrintedFEA
     from neuralslicer.outputs import RunResults, StrengthRound
 
 
@@ -91,17 +91,6 @@ def read_layers(ref: ArtifactRef) -> Layers:
     return Layers.from_arrays(*read(ref))
 
 
-def encode_motion(tp: Toolpaths, program: MachineProgram, metrics: dict, collisions: CollisionReport
-                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """One group for the motion step: toolpaths/* (as moved), program/*, collisions/* and the metrics."""
-    tp_arrays, tp_attrs = tp.to_arrays()
-    prog_arrays, prog_attrs = program.to_arrays()
-    arrays = {**{f"toolpaths/{k}": v for k, v in tp_arrays.items()}, **{f"program/{k}": v for k, v in prog_arrays.items()},
-              "collisions/indices": collisions.indices, "collisions/kind": collisions.kind,
-              "collisions/locations": np.asarray(collisions.locations, dtype=np.float64).reshape(-1, 3)}
-    return arrays, {"toolpaths": tp_attrs, "program": prog_attrs, "metrics": metrics}
-
-
 def read_machine_program(ref: ArtifactRef) -> MachineProgram:
     """The machine program of a stored print alone (not its toolpaths or collisions)."""
     store = ArtifactStore(ref.store, create=False)
@@ -139,7 +128,7 @@ def read_program(ref: ArtifactRef) -> StoredBytes:
 
 
 def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram) -> tuple[Toolpaths, P, dict]:
-    """Toolpaths, machine program and print metrics (the inverse of encode_motion); ``program``: ProgramMoves to
+    """Toolpaths, machine program and print metrics (the inverse of ``Motion.to_arrays``); ``program``: ProgramMoves to
     read only the program's arrays that drawing it needs."""
     names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS] + [f"program/{k}" for k in program.ARRAYS]
     arrays, attrs = ArtifactStore(ref.store, create=False).read(ref.path, names)
@@ -149,16 +138,6 @@ def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram) -> tuple[To
         program.from_arrays(part["program"], attrs["program"]),
         attrs["metrics"],
     )
-
-
-def n_collisions(ref: ArtifactRef) -> int:
-    """Colliding waypoints of a stored print."""
-    return int(attrs_of(ref)["metrics"].get("n_collisions", 0))
-
-
-def n_platform_collisions(ref: ArtifactRef) -> int:
-    """Waypoints of a stored print whose head is below the platform."""
-    return int(attrs_of(ref)["metrics"].get("n_platform_collisions", 0))
 
 
 def read_collision_map(ref: ArtifactRef) -> CollisionMap:
@@ -184,19 +163,78 @@ def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
                            arrays.get("collisions/locations"))
 
 
+class StoredMotion:
+    """A stored print (the motion step's group) read like :class:`neuralslicer.motion.output.Motion`: each part
+    (toolpaths, program, metrics, collisions) read from the store when first used, so a step that needs one part does
+    not hold the others."""
+
+    def __init__(self, ref: ArtifactRef) -> None:
+        """The print stored as the group of ``ref``."""
+        self.ref = ref
+
+    @cached_property
+    def toolpaths(self) -> Toolpaths:
+        """The toolpaths as moved."""
+        names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS]
+        arrays, attrs = read(self.ref, names)
+        return Toolpaths.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()}, attrs["toolpaths"])
+
+    @cached_property
+    def program(self) -> MachineProgram:
+        """The machine program."""
+        return read_machine_program(self.ref)
+
+    @cached_property
+    def metrics(self) -> dict[str, Any]:
+        """The print's metrics."""
+        return attrs_of(self.ref)["metrics"]
+
+    @cached_property
+    def collisions(self) -> CollisionReport:
+        """The exact check's collisions (no locations where the print predates them)."""
+        names = ["collisions/indices", "collisions/kind"]
+        try:
+            arrays, _ = read(self.ref, [*names, "collisions/locations"])
+        except KeyError:
+            arrays, _ = read(self.ref, names)
+        n = len(arrays["collisions/indices"])
+        return CollisionReport(np.asarray(arrays["collisions/indices"], np.int64),
+                               np.asarray(arrays.get("collisions/locations", np.full((n, 3), np.nan))),
+                               np.asarray(arrays["collisions/kind"]))
+
+    def part_collisions(self) -> tuple[np.ndarray, np.ndarray]:
+        """(hits (k,3), witnesses (k,3)) of the print (:func:`read_part_collisions`)."""
+        return read_part_collisions(self.ref)
+
+
+def read_model(ref: ArtifactRef) -> Model:
+    """The model step's output: the spec, its implicit solid and the model's name."""
+    return Model.from_arrays(*read(ref), name=ref.model)
+
+
+def read_record(ref: ArtifactRef) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A stored step's arrays and attributes as they are (a field, a verification)."""
+    return read(ref)
+
+
+def read_printed_fea(ref: ArtifactRef) -> PrintedFEA:
+    """The FEA of a printed part, with its strain figures and how tau_max turned."""
+    from neuralslicer.fea.solver import PrintedFEA   # scipy.sparse: only where an FEA is read
+
+    return PrintedFEA.from_arrays(*read(ref))
+
+
+def read_user_points(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+    """A stored user field as (points (p,3), values (p,))."""
+    arrays, _ = read(ref)
+    return arrays["points"], arrays["values"]
+
+
 def read_fea(ref: ArtifactRef) -> FEAResult:
     """The isotropic FEA result."""
     from neuralslicer.fea.solver import FEAResult   # scipy.sparse: only where an FEA is read
 
     return FEAResult.from_arrays(*read(ref))
-
-
-def read_fea_spec(model: ArtifactRef) -> FEASpec:
-    """The FEA block of the model's spec (an error naming the spec when it has none)."""
-    spec = attrs_of(model)["spec"]
-    if spec.get("fea") is None:
-        raise InputError(spec.get("source") or model.model, "the model spec has no 'fea' block (supports and loads)")
-    return FEASpec.model_validate(spec["fea"])
 
 
 def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
@@ -209,14 +247,6 @@ def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
     ref = st.ref(f"{model}/user_field/{key}", key)
     st.write_once(ref.path, lambda: ({"points": points, "values": values}, {"source": str(path)}))
     return ref
-
-
-def read_user_field(ref: ArtifactRef | None) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """(values, points) of a stored user field; (None, None) without one."""
-    if ref is None:
-        return None, None
-    arrays, _ = read(ref)
-    return arrays["values"], arrays["points"]
 
 
 def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
@@ -259,3 +289,20 @@ def read_strength_round(label: str, motion: ArtifactRef, printed: ArtifactRef) -
     arrays, attrs = read(printed, [f"turn/{k}" for k in TURN_ARRAYS])
     return StrengthRound(label, int(attrs_of(motion)["metrics"].get("n_collisions", 0)), attrs,
                          {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items()})
+
+
+#: how an input of each kind of group is read for a step's core call (``tasks/steps.py``)
+DECODERS: dict[str, Callable[[ArtifactRef], Any]] = {
+    "model": read_model, "surface": read_surface, "samples": read_samples, "cage": read_cage, "fea": read_fea,
+    "fea_printed": read_printed_fea, "stress_samples": read_stress, "field": read_record, "field_s3": read_record,
+    "field_s3_oneshot": read_record, "field_blend": read_record, "layers": read_layers, "toolpaths": read_toolpaths,
+    "motion": StoredMotion, "verify": read_record, "user_field": read_user_points,
+}
+
+
+def decode(ref: ArtifactRef) -> Any:
+    """A stored step's output as its core function returned it (or as a later step reads it: a print part by part)."""
+    kind = group_kind(ref.path)
+    if kind not in DECODERS:
+        raise ValueError(f"{ref.path}: no step reads a group of kind {kind!r}")
+    return DECODERS[kind](ref)

@@ -1,195 +1,109 @@
-"""One Prefect task per pipeline step, named after the store group it writes: read inputs, one core call,
-return what to store."""
+"""One Prefect task per step of the table (``neuralslicer/step_table.py``), made from its entry: each input read from
+the store by the kind of its group (``tasks/codec.py: decode``), the step's core function called, its output written
+as the group the task is named after."""
 from __future__ import annotations
 
-from collections.abc import Iterator
+import contextlib
+import inspect
+from collections.abc import Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
-from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
-from neuralslicer.cage import Cage, CageConfig, make_cage
-from neuralslicer.config import SampleConfig
-from neuralslicer.fea.samples import stress_field
-from neuralslicer.layers import LayerConfig, slice_layers
-from neuralslicer.model.solid import implicit_solid
-from neuralslicer.model.spec import ModelSpec
-from neuralslicer.field_step import blend_record, height_record, s3_oneshot_record, s3_record
-from neuralslicer.motion.profile import MachineProfile
-from neuralslicer.neural.config import NeuralConfig
-from neuralslicer.samples import surface_samples
-from neuralslicer.toolpath.config import ToolpathConfig
-from neuralslicer.storage import ArrayStream, ArtifactRef
+from neuralslicer.step_table import STEPS, Record, Step, StepContext, Update
+from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore
 from neuralslicer.storage.content_cache import ContentCache, cache_root
-from neuralslicer.tasks.codec import (encode_motion, read, read_cage, read_fea, read_fea_spec, read_field, read_layers, read_machine_program,
-                         read_part_collisions, read_samples, read_solid, read_stress, read_toolpaths, read_user_field)
+from neuralslicer.tasks.checkpoints import StoreCheckpoints
+from neuralslicer.tasks.codec import decode
 from neuralslicer.tasks.common import pipeline_task
 from neuralslicer.tasks.isolate import large_print
 from neuralslicer.tasks.progress import Progress, run_logger, say
 
 
-@pipeline_task("model", version="1", exclude=("spec",), retries=0)
-def model_task(out: ArtifactRef, store: str, name: str, spec: ModelSpec, content: str) -> tuple[dict, dict]:
-    """Read every file of the spec and store the solid's components in the build frame."""
-    solid = implicit_solid(spec)
-    arrays, attrs = solid.to_arrays()
-    run_logger().info("model %s: %s, bounds %s", name, solid, np.round(solid.bounds, 3).tolist())
-    return arrays, {**attrs, "spec": spec.model_dump(mode="json"), "content_sha256": content}
+@contextlib.contextmanager
+def _bar(description: str, total: int) -> Iterator[Update]:
+    """A progress bar on the terminal and in the run's log (``tasks/progress.py``)."""
+    with Progress(description, total) as bar:
+        yield bar.update
 
 
-@pipeline_task("surface", version="1")
-def surface_task(out: ArtifactRef, store: str, model: ArtifactRef) -> tuple[dict, dict]:
-    """The boundary surface H = 0 of the solid, its genus, volume and bounds."""
-    return read_solid(model).surface_record()
+def step_context(out: ArtifactRef, s: Step) -> StepContext:
+    """What a step's core call gets in a task: the run's log, progress bars, and the checkpoints of a resumable step
+    beside its output (``<model>/checkpoints/<digest>``); its inputs are read for it alone."""
+    checkpoints = (StoreCheckpoints(ArtifactStore(out.store), f"{out.model}/checkpoints/{out.digest}")
+                   if s.resumable else None)
+    return StepContext(log=run_logger(), progress=_bar, say=say, checkpoints=checkpoints, owns_inputs=True)
 
 
-@pipeline_task("samples", version="1")
-def samples_task(out: ArtifactRef, store: str, model: ArtifactRef, config: SampleConfig) -> tuple[dict, dict]:
-    """Surface samples B with normals, area weights, kNN lists and platform flags."""
-    samples = surface_samples(read_solid(model), config.n_samples, k=config.k, seed=config.seed)
-    run_logger().info("B: %d samples, %d on the platform, residual %.2e", len(samples), samples.on_platform.sum(),
-                          samples.residual)
-    return samples.to_arrays()
+def _read(value: Any) -> Any:
+    """A parameter as the core call takes it: a stored artifact read (a list of them each), anything else as it is."""
+    if isinstance(value, ArtifactRef):
+        return decode(value)
+    if isinstance(value, list) and value and all(isinstance(v, ArtifactRef) for v in value):
+        return [decode(v) for v in value]
+    return value
 
 
-@pipeline_task("cage", version="2")
-def cage_task(out: ArtifactRef, store: str, model: ArtifactRef, samples: ArtifactRef, config: CageConfig
-              ) -> tuple[dict, dict]:
-    """Tetrahedralized offset of the solid at the target element count, containing B and interior points."""
+def _storable(arrays: dict[str, Any]) -> dict[str, Any]:
+    """The arrays as the store writes them: one given as an iterable of byte chunks (the G-code) streamed."""
+    def one(v: Any) -> Any:
+        if isinstance(v, (np.ndarray, ArrayStream, list, tuple, str, bytes)) or not isinstance(v, Iterable):
+            return v
+        return ArrayStream(np.dtype(np.uint8), (np.frombuffer(chunk, np.uint8) for chunk in v))
+
+    return {k: one(v) for k, v in arrays.items()}
+
+
+def _from_content_cache(s: Step, out: ArtifactRef) -> Record | None:
+    """A content-cached step's output of these inputs from the machine's cache (None when absent or not intact)."""
     cache = ContentCache(cache_root())
-    hit = cache.load("cage", out.digest)
-    if hit is not None and _intact_cage(*hit):
-        arrays, attrs = hit
-        say(f"cage: the cage of these inputs from the cage cache ({cache.root}), {attrs['n_elements']} tets")
-        return arrays, {**{k: v for k, v in attrs.items() if k != "cache_key"}, "from_cage_cache": True}
-    cage = make_cage(read_solid(model), read_samples(samples).points, config)
-    arrays, attrs = cage.to_arrays()
-    attrs.update(cage.summary())
-    run_logger().info("cage: %d tets, %d vertices, genus %d", len(cage.tets), len(cage.vertices), attrs["genus"])
-    if not cage.seeded:
-        run_logger().warning("cage: fTetWild's random draw could not be seeded here (neuralslicer/tetwild_seed.py): "
-                                 "another machine builds another cage from these inputs")
-    cache.save("cage", out.digest, arrays, attrs)  # the same inputs reuse this cage (unseeded, fTetWild's varies)
-    return arrays, attrs
+    hit = cache.load(s.name, out.digest)
+    if hit is None or not s.content_cached(hit):
+        return None
+    say(f"{s.name}: the {s.name} of these inputs from the {s.name} cache ({cache.root})")
+    arrays, attrs = hit
+    return arrays, {**{k: v for k, v in attrs.items() if k != "cache_key"}, f"from_{s.name}_cache": True}
 
 
-def _intact_cage(arrays: dict, attrs: dict) -> bool:
-    """True when a cached cage's content matches the digest recorded with it."""
-    try:
-        return Cage.from_arrays(arrays, attrs).sha256() == attrs["sha256"]
-    except (KeyError, TypeError, ValueError):
-        return False
+def _body(s: Step) -> Any:
+    """The task body of a step: read the inputs, call the core function, return what to store."""
+
+    def body(out: ArtifactRef, store: str, **parameters: Any) -> Record:
+        if s.content_cached is not None:
+            hit = _from_content_cache(s, out)
+            if hit is not None:
+                return hit
+        kept = {k: _read(v) for k, v in parameters.items() if k not in s.key}
+        arrays, attrs = s.encode(s.compute(**kept, ctx=step_context(out, s)))
+        if s.content_cached is not None:   # the same inputs reuse it in any store on this machine
+            ContentCache(cache_root()).save(s.name, out.digest, arrays, attrs)
+        return _storable(arrays), attrs
+
+    compute = inspect.signature(s.compute)
+    plain = inspect.Parameter.POSITIONAL_OR_KEYWORD
+    head = [inspect.Parameter(n, plain) for n in ("out", "store", *s.key)]
+    params = [p.replace(kind=plain, annotation=inspect.Parameter.empty)
+              for n, p in compute.parameters.items() if n != "ctx"]
+    body.__signature__ = inspect.Signature(head + params)  # type: ignore[attr-defined]
+    body.__name__ = body.__qualname__ = f"{s.name}_task"    # Prefect's task key; how a step's own process finds it
+    body.__module__ = __name__
+    body.__doc__ = (s.compute.__doc__ or s.name).split("\n")[0]
+    return body
 
 
-@pipeline_task("field", version="4")
-def field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
-               stress: ArtifactRef | None, objectives: list[str], config: NeuralConfig,
-               user_field: ArtifactRef | None = None, refine_prints: list[ArtifactRef] | None = None,
-               warm_start: ArtifactRef | None = None) -> tuple[dict, dict]:
-    """The printing field G: the height field without objectives, else the neural optimisation (checkpointed);
-    with ``refine_prints``, L_GC's pool refined around those prints' collisions, started from ``warm_start``'s
-    weights (the field that printed the last of them); with ``warm_start`` alone, started from its weights (a
-    strength round with new stress samples)."""
-    c = read_cage(cage)
-    if not objectives:
-        return height_record(c)
-    from neuralslicer.neural.optimise import FieldResult, Refinement   # torch: only when a field is optimised
-    from neuralslicer.tasks.optimise import run_optimisation
-
-    weights = FieldResult.weights_of(read(warm_start)[0]) if warm_start is not None else None
-    refine = None
-    if refine_prints:
-        refine = Refinement.of_prints([read_part_collisions(p) for p in refine_prints], weights)
-    return run_optimisation(out, c, read_samples(samples), read_stress(stress) if stress is not None else None,
-                            objectives, config, read_solid(model), *read_user_field(user_field), refine=refine,
-                            warm_start=weights if refine is None else None)
+def step_task(s: Step) -> Any:
+    """The Prefect task of a step of the table."""
+    options = {} if s.retries is None else {"retries": s.retries}
+    return pipeline_task(s.name, s.version, exclude=s.exclude, isolate=large_print(*s.large) if s.large else None,
+                         **options)(_body(s))
 
 
-@pipeline_task("field_s3", version="3")
-def s3_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
-                  stress: ArtifactRef | None, objectives: list[str], config: S3DeformConfig) -> tuple[dict, dict]:
-    """S3-Slicer's field G: its iterative deformation of the model's tet mesh (or the cage), carried to the cage."""
-    with Progress("s3", total=config.resolve(model.model, objectives).outer_loops) as bar:
-        arrays, attrs = s3_record(read_cage(cage), read_solid(model), read_samples(samples),
-                                  read_stress(stress) if stress is not None else None, objectives, config, model.model,
-                                  progress=lambda it, info: bar.update(it, total=float(info["fabrication_sl"])))
-    run_logger().info("s3 on the %s mesh: %s", attrs.get("on"), attrs.get("satisfaction"))
-    return arrays, attrs
+#: the task of every step, by the step's name
+TASKS: dict[str, Any] = {s.name: step_task(s) for s in STEPS}
 
 
-@pipeline_task("field_s3_oneshot", version="1")
-def s3_oneshot_field_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, samples: ArtifactRef,
-                          stress: ArtifactRef | None, objectives: list[str], config: S3Config) -> tuple[dict, dict]:
-    """The one-shot S3 variant's field G: per-element rotations optimised in the deformed space, one ARAP solve."""
-    with Progress("s3", total=config.steps) as bar:
-        arrays, attrs = s3_oneshot_record(read_cage(cage), read_solid(model), read_samples(samples),
-                                          read_stress(stress) if stress is not None else None, objectives, config,
-                                          progress=lambda step, info: bar.update(step, total=float(info["total"])))
-    run_logger().info("s3_oneshot: %s", attrs.get("satisfaction"))
-    return arrays, attrs
-
-
-@pipeline_task("field_blend", version="1")
-def field_blend_task(out: ArtifactRef, store: str, cage: ArtifactRef, field: ArtifactRef, planar: float
-                     ) -> tuple[dict, dict]:
-    """The field blended toward planar layers, (1 - planar) G + planar z: the last resort against collisions."""
-    run_logger().info("field blended toward planar layers: %.3g", planar)
-    return blend_record(read_cage(cage), read(field), planar)
-
-
-@pipeline_task("layers", version="5")
-def layers_task(out: ArtifactRef, store: str, model: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
-                config: LayerConfig) -> tuple[dict, dict]:
-    """Isosurfaces of G trimmed by H <= 0, isovalues chosen for the thickness range, in print order."""
-    with Progress("layers", total=1) as bar:
-        layers = slice_layers(read_solid(model), read_field(read_cage(cage), field), config, progress=bar.update)
-    run_logger().info("layers: %d, thickness %s", len(layers.meshes),
-                          {k: round(v, 3) for k, v in layers.report.items() if k.startswith("thickness")})
-    return layers.to_arrays()
-
-
-@pipeline_task("toolpaths", version="13")
-def toolpaths_task(out: ArtifactRef, store: str, model: ArtifactRef, layers: ArtifactRef, config: ToolpathConfig,
-                   machine: MachineProfile, t_max: float, fea: ArtifactRef | None = None) -> tuple[dict, dict]:
-    """Toolpaths on every layer (shells, infill, order, bead widths and heights); with ``fea`` the infill can
-    follow its stress."""
-    from neuralslicer.toolpath.plan import plan_toolpaths   # the planner (scipy): only when the step runs
-
-    stress = stress_field(read_fea(fea), read_fea_spec(model).top_fraction) if fea is not None else None
-    tp = plan_toolpaths(read_layers(layers).meshes, platform_z=read_solid(model).platform_z, toolpath_cfg=config,
-                        profile=machine, t_max=t_max, stress=stress)
-    run_logger().info("toolpaths: %d waypoints, %d paths", len(tp), int(tp.attrs.get("n_paths", 0)))
-    return tp.to_arrays()
-
-
-@pipeline_task("motion", version="1", isolate=large_print("toolpaths", "xyz"))
-def motion_task(out: ArtifactRef, store: str, model: ArtifactRef, toolpaths: ArtifactRef, config: ToolpathConfig,
-                machine: MachineProfile) -> tuple[dict, dict]:
-    """The exact collision check of the head, travel lifts, tilts and reach, and the machine program (IK, extrusion)
-    with the print's metrics."""
-    from neuralslicer.motion.plan import plan_motion_of
-
-    solid = read_solid(model)
-    tp, program, metrics, collisions = plan_motion_of(read_toolpaths(toolpaths), platform_z=solid.platform_z,
-                                                      solid_H=solid.H, toolpath_cfg=config, profile=machine,
-                                                      consume=True)
-    run_logger().info("motion: %d waypoints, %d collisions", metrics["n_waypoints"], metrics["n_collisions"])
-    return encode_motion(tp, program, metrics, collisions)
-
-
-@pipeline_task("program", version="1", isolate=large_print("motion", "toolpaths/xyz"))
-def program_task(out: ArtifactRef, store: str, motion: ArtifactRef) -> tuple[dict, dict]:
-    """The machine program as G-code in the profile's dialect, streamed into the store a layer at a time."""
-    from neuralslicer.gcode.writers import gcode_chunks
-
-    program = read_machine_program(motion)
-    logger = run_logger()
-
-    def parts() -> Iterator[np.ndarray]:
-        """The G-code's chunks as bytes; logs its size at the end."""
-        n = 0
-        for chunk in gcode_chunks(program):
-            n += len(chunk)
-            yield np.frombuffer(chunk, np.uint8)
-        logger.info("program: %s G-code, %.1f MB", program.profile.gcode.dialect, n / 1e6)
-
-    return {"gcode": ArrayStream(np.dtype(np.uint8), parts())}, {"dialect": program.profile.gcode.dialect}
+def __getattr__(name: str) -> Any:
+    """``<step>_task``: the task of a step (``from neuralslicer.tasks.steps import layers_task``)."""
+    if name.endswith("_task") and name.removesuffix("_task") in TASKS:
+        return TASKS[name.removesuffix("_task")]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

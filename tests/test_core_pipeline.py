@@ -26,7 +26,7 @@ config = SliceConfig.model_validate(json.loads(sys.argv[3]))
 chain, metrics = slice_model(spec_for_file(model, "z"), config, out)
 outer = ("prefect", "neuralslicer.storage", "neuralslicer.tasks", "neuralslicer.flows", "neuralslicer.cli")
 loaded = sorted(m for m in sys.modules if m.startswith(outer) and sys.modules[m] is not None)
-print(json.dumps({"modules": loaded, "metrics": metrics, "gcode": len(chain.program)}, default=float))
+print(json.dumps({"modules": loaded, "metrics": metrics, "gcode": len(bytes(chain.program))}, default=float))
 '''
 
 

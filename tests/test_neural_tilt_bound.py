@@ -220,10 +220,8 @@ def test_the_slice_passes_a_three_axis_profiles_bound_to_the_optimisation(monkey
     from neuralslicer.config import SliceConfig
 
     class Steps:
-        def model(self, spec):
+        def run(self, step, **parameters):
             return None
-
-        surface = samples = cage = lambda self, *a: None
 
     profile = _Profile(bound)
     profile.nozzle = NOZZLE

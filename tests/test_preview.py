@@ -288,13 +288,13 @@ def stored_run(tmp_path: Path, curved) -> Path:
     """An output folder whose run.json names a store holding the print (as `neuralslicer slice` leaves it)."""
     from neuralslicer.motion.collision import CollisionReport
     from neuralslicer.storage import ArtifactStore
-    from neuralslicer.tasks.codec import encode_motion
+    from neuralslicer.motion.output import Motion
 
     tp, prog, metrics, _ = curved
     hits = CollisionReport(np.array([7, 70]), np.zeros((2, 3)), np.zeros(2, np.int8))
     store = ArtifactStore(tmp_path / "store.zarr")
     group = "caps/motion/0123456789abcdef0123"
-    store.write(group, *encode_motion(tp, prog, metrics, hits))
+    store.write(group, *Motion(tp, prog, metrics, hits).to_arrays())
     run = tmp_path / "run"
     run.mkdir()
     (run / "run.json").write_text(json.dumps({"store": store.root, "groups": {"motion": group}}))

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -326,6 +326,34 @@ class FEAResult:
         return cls(grid, *(np.asarray(arrays[k]) for k in (
             "displacement", "strain", "stress", "principal_stress", "principal_directions",
             "tau_max", "max_principal", "von_mises")), info=info)
+
+
+#: the strain figures of a printed part's FEA (``verify.printed_fea_of``), kept in its attributes
+PRINTED_FIGURES = ("max_strain", "max_strain_p99", "max_displacement_mm", "tau_turn_median_deg", "tau_turn_p90_deg")
+
+
+@dataclass
+class PrintedFEA(FEAResult):
+    """The FEA of a part as printed (``verify.printed_fea_of``): an FEA result (a strength round samples its T from
+    it) with the print's strain figures and ``turn``, how the printed material turned tau_max at T's voxels
+    (``verify.stress_turn``)."""
+
+    figures: dict[str, float] = field(default_factory=dict)
+    turn: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The FEA's arrays with ``turn/*``, its attributes with the figures."""
+        arrays, attrs = super().to_arrays()
+        return {**arrays, **{f"turn/{k}": v for k, v in self.turn.items()}}, {**attrs, **self.figures}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> "PrintedFEA":
+        """Inverse of ``to_arrays``."""
+        base = FEAResult.from_arrays(arrays, attrs)
+        figures = {k: float(attrs[k]) for k in PRINTED_FIGURES if k in attrs}
+        turn = {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items() if k.startswith("turn/")}
+        kept = {f.name: getattr(base, f.name) for f in fields(FEAResult) if f.name != "info"}
+        return cls(**kept, info={k: v for k, v in base.info.items() if k not in figures}, figures=figures, turn=turn)
 
 
 def principal(stress: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

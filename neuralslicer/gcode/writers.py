@@ -1,6 +1,8 @@
 """G-code writers: LinuxCNC RS274/NGC (A = filament) and RepRap/Marlin (E), written atomically."""
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
 from pathlib import Path
 from collections.abc import Iterable, Iterator
 
@@ -375,6 +377,28 @@ def gcode_chunks(program: MachineProgram) -> Iterator[bytes]:
 def gcode_bytes(program: MachineProgram) -> bytes:
     """The program as G-code in its profile's dialect (the program step's output)."""
     return b"".join(gcode_chunks(program))
+
+
+@dataclass(frozen=True)
+class GCode:
+    """The program step's output: a machine program's G-code in its profile's dialect, made a chunk (a layer) at a
+    time each time it is iterated, its size logged at the end (a long print's G-code is never whole in memory)."""
+
+    program: MachineProgram
+    log: logging.Logger | logging.LoggerAdapter | None = None
+
+    def __iter__(self) -> Iterator[bytes]:
+        """The G-code's chunks."""
+        n = 0
+        for chunk in gcode_chunks(self.program):
+            n += len(chunk)
+            yield chunk
+        if self.log is not None:
+            self.log.info("program: %s G-code, %.1f MB", self.program.profile.gcode.dialect, n / 1e6)
+
+    def __bytes__(self) -> bytes:
+        """The whole G-code."""
+        return b"".join(self)
 
 
 def write_gcode(path: str | Path, program: MachineProgram | bytes | Iterable[bytes]) -> Path:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -22,6 +23,8 @@ from neuralslicer.types import FloatArray
 
 if TYPE_CHECKING:  # trimesh (and scipy.spatial, networkx) only where a mesh is made: not on a cached rerun
     import trimesh
+
+    from neuralslicer.fea.spec import FEASpec
 
 
 SCHEMA_VERSION = 1
@@ -382,3 +385,37 @@ def _build_component(cs, frame, s: float) -> Component:
         radius = cs.radius * s if cs.radius is not None else radius_from_threshold(cs.threshold * s, c)
         return TubesComponent(seg, radius, c, None if cs.wall is None else cs.wall * s)
     raise InputError(path, f"unknown component type {cs.type!r}")  # pragma: no cover
+
+
+@dataclass(frozen=True)
+class Model:
+    """The model step's output: the spec, its implicit solid and the name its results are stored under."""
+
+    spec: ModelSpec
+    solid: Solid
+    name: str = ""
+
+    @property
+    def label(self) -> str:
+        """The model's name (``name``, else the spec's file's)."""
+        from neuralslicer.model.spec import model_name
+
+        return self.name or model_name(self.spec)
+
+    @property
+    def fea_spec(self) -> FEASpec:
+        """The spec's FEA block (an error naming the spec when it has none)."""
+        if self.spec.fea is None:
+            raise InputError(getattr(self.spec, "source", None) or self.label,
+                             "the model spec has no 'fea' block (supports and loads)")
+        return self.spec.fea
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """The solid's components and the spec, as the store keeps them."""
+        arrays, attrs = self.solid.to_arrays()
+        return arrays, {**attrs, "spec": self.spec.model_dump(mode="json")}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict, name: str = "") -> "Model":
+        """Inverse of ``to_arrays`` (``name``: the model's name in the store)."""
+        return cls(ModelSpec.model_validate(attrs["spec"]), Solid.from_arrays(arrays, attrs), name)
