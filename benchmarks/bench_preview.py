@@ -1,5 +1,5 @@
 """Benchmark: preview.html of finished slices, its size, its decimation and how long a headless Chromium takes to draw
-it (navigation to the part on screen), with the browser check of tests/test_preview_browser.py.
+it (navigation to the part on screen), with the browser check of tests/preview/test_preview_browser.py.
 
     .venv/bin/python benchmarks/bench_preview.py [--run NAME=RUN_DIR ...] [--repeats 3] [--quick]
 

@@ -2,7 +2,7 @@
 "Where S3's residual is").
 
     python benchmarks/bench_s3_residual.py ring 4      # S3's ring on its own mesh, 4 outer iterations (~3-5 min)
-    python benchmarks/bench_s3_residual.py sphere 4    # the ball of tests/test_baselines_s3_iterative.py (1 s)
+    python benchmarks/bench_s3_residual.py sphere 4    # the ball of tests/baselines/test_baselines_s3_iterative.py (1 s)
 
 For each outer iteration: the boundary overhang at 45 deg in the deformed space and realised (grad G), and the
 held-out overhang (the tests' helpers: area-uniform surface points, the LPD of the tet they lie in), split into
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "tests" / "baselines")]
 
 import neuralslicer.baselines.s3_deform as d  # noqa: E402
 from neuralslicer.baselines.s3_config import S3DeformConfig  # noqa: E402

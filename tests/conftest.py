@@ -66,7 +66,7 @@ def fast_config(**overrides: object) -> dict:
         "neural": {"optim": {"max_steps": 20, "checkpoint_every": 5}},
         "layers": {"layer_height": 1.0, "thickness_samples": 2000},
         "toolpath": {"line_width": 1.0, "spacing": 1.0, "n_shells": 1, "infill_density": 0.5},
-        # collisions are resolved in tests/test_flow.py::test_collisions_fall_back_to_a_collision_free_blend
+        # collisions are resolved in tests/flows/test_flow.py::test_collisions_fall_back_to_a_collision_free_blend
         "collision_refinements": 0,
         "collision_retries": 0,
         "collision_fallback": "none",

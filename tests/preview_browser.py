@@ -1,5 +1,5 @@
 """preview.html in a real headless Chromium (Debian's chromium and chromium-driver, driven by selenium): shared by
-tests/test_preview_browser.py and benchmarks/bench_preview.py."""
+tests/preview/test_preview_browser.py and benchmarks/bench_preview.py."""
 from __future__ import annotations
 
 import io

@@ -85,6 +85,7 @@ def centre_step(samples: Any, weight: float, *, ctx: StepContext) -> np.ndarray:
     return weight * np.average(samples.points, axis=0, weights=samples.areas)
 
 
+@pytest.mark.slow   # a Prefect server and a flow (~15 s): the full suite runs it, `make test-fast` does not
 def test_a_step_added_to_the_table_runs_both_ways(prefect_server: None, small_part: Path, tmp_path: Path,
                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from prefect import flow

@@ -17,7 +17,7 @@ from studies_common import shared_store, tiny_config, torus_file
 
 pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _study_command(model: Path, out: Path, store: Path, config: Path) -> list[str]:

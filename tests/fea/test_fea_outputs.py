@@ -12,7 +12,7 @@ from neuralslicer.fea import FEAResult, FEASpec, run_fea, stress_samples, write_
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.fea.shapes import BoxSolid
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "neuralslicer" / "examples" / "fea_beam"
+EXAMPLE = Path(__file__).resolve().parents[2] / "neuralslicer" / "examples" / "fea_beam"
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from neuralslicer.storage import ArtifactStore
 
 pytestmark = pytest.mark.slow   # end to end (a Prefect server, the CLI or a cluster): not in `make test-fast`
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PREFECT = str(Path(sys.executable).with_name("prefect"))
 SLICE = "neuralslicer-slice-model/slice"
 #: Prefect's console format of a log record: what a quiet terminal does not show at INFO

@@ -141,7 +141,7 @@ def test_no_tracked_file_names_a_machine_path_or_the_shared_data_folder() -> Non
     machine it was written on, and no shared data folder outside the package."""
     import subprocess
 
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[2]
     # split, so that this file does not match itself
     patterns = ("/" + "work/", "/" + "home/", "/" + "tmp/", "shared" + "/data")
     files = subprocess.run(["git", "ls-files", "-z"], cwd=repo, capture_output=True, check=True).stdout

@@ -157,7 +157,7 @@ def test_the_served_deployments_keep_a_specs_up_and_carry_the_slice_schedule(tmp
 
 def test_prefect_yaml_sets_no_up_axis_and_schedules_the_slice() -> None:
     """deployments/prefect.yaml: the spec's own up axis (no deployment sets up or units), the slice scheduled."""
-    doc = yaml.safe_load((Path(__file__).resolve().parents[1] / "deployments" / "prefect.yaml").read_text())
+    doc = yaml.safe_load((Path(__file__).resolve().parents[2] / "deployments" / "prefect.yaml").read_text())
     deployments = {d["name"]: d for d in doc["deployments"]}
     assert all("up" not in d["parameters"] and "units" not in d["parameters"] for d in deployments.values())
     assert deployments["slice"]["parameters"]["model"] == "neuralslicer/data/ring.yaml"

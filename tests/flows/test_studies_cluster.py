@@ -24,7 +24,7 @@ from studies_common import tiny_config, torus_file
 
 pytest.importorskip("distributed")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DASK = Path(sys.executable).with_name("dask")
 
 

@@ -12,7 +12,7 @@ from zarr.codecs import BloscCodec
 from neuralslicer.storage import ArtifactRef, ArtifactStore, atomic_path, digest, groups_used
 from neuralslicer.storage.layout import CHUNK_BYTES, DIMENSIONS, chunk_shape, dimension_names, group_dimensions
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_write_read_roundtrip_with_nested_names(tmp_path):
