@@ -23,7 +23,8 @@ import numpy as np
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
-from neuralslicer.field_step import (Record, blend_record, field_of, height_record, s3_oneshot_record, s3_record)
+from neuralslicer.field_step import (FieldRecord, Record, blend_record, field_of, height_record, s3_oneshot_record,
+                                     s3_record)
 from neuralslicer.layers import LayerConfig, Layers, slice_layers
 from neuralslicer.model.solid import Model, implicit_solid
 from neuralslicer.model.spec import ModelSpec, model_name, spec_digest
@@ -97,11 +98,11 @@ class Step:
 
     key : the parameters that only name or key its output (the Prefect runner adds them, ``key_of`` of the others;
     ``compute`` does not take them); exclude : parameters left out of the cache key; large : (parameter, array) of
-    the print whose waypoint count makes the step run in a process of its own; content_cached : the check of an entry of the
-    machine's content cache, where the step's output is also kept, across stores (the cage: fTetWild's draw is not
-    the same everywhere); resumable : gets checkpoints;
-    device : the torch device it computes on, from its parameters (the Prefect runner tags GPU steps);
-    family : the role it fills in a chain (every method of the field is a "field"), its wall time's name.
+    the print whose waypoint count makes the step run in a process of its own; content_cached : the check of an
+    entry of the machine's content cache, where the step's output is also kept, across stores (the cage: fTetWild's
+    draw is not the same everywhere); resumable : gets checkpoints; device : the torch device it computes on, from
+    its parameters (the Prefect runner tags GPU steps); retries : Prefect's retries of its task (its default when
+    None); family : the role it fills in a chain (every method of the field is a "field"), its wall time's name.
     """
 
     name: str
@@ -214,8 +215,8 @@ def stress_samples_step(model: Model, fea: FEAResult, *, ctx: StepContext) -> St
 
 def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
                objectives: list[str], config: NeuralConfig, user_field: tuple[np.ndarray, np.ndarray] | None = None,
-               refine_prints: list[Motion] | None = None, warm_start: Record | None = None, *,
-               ctx: StepContext) -> Record:
+               refine_prints: list[Motion] | None = None, warm_start: FieldRecord | None = None, *,
+               ctx: StepContext) -> FieldRecord:
     """Steps 4-9, the printing field G: the height field without objectives, else the neural optimisation
     (checkpointed); with ``refine_prints``, L_GC's pool refined around those prints' collisions, started from
     ``warm_start``'s weights; with ``warm_start`` alone, started from its weights (a strength round)."""
@@ -223,7 +224,7 @@ def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress:
         return height_record(cage)
     from neuralslicer.neural.optimise import FieldResult, Refinement, optimise_for_solid   # torch: only here
 
-    weights = FieldResult.weights_of(warm_start[0]) if warm_start is not None else None
+    weights = FieldResult.weights_of(warm_start.arrays) if warm_start is not None else None
     refine = Refinement.of_prints([m.part_collisions() for m in refine_prints], weights) if refine_prints else None
     start = weights if refine is None else None
     oc = config.optim
@@ -254,31 +255,31 @@ def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress:
     ctx.log.info("optimised in %d steps (%.1f s): %s", result.steps, result.wall_time_s, result.final)
     arrays, attrs = result.to_arrays()
     resumed = ctx.checkpoints.resumed_from if ctx.checkpoints is not None else None
-    return arrays, {**attrs, "resumed_from_step": resumed}
+    return FieldRecord(arrays, {**attrs, "resumed_from_step": resumed})
 
 
 def s3_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
-                  objectives: list[str], config: S3DeformConfig, *, ctx: StepContext) -> Record:
+                  objectives: list[str], config: S3DeformConfig, *, ctx: StepContext) -> FieldRecord:
     """S3-Slicer's field G: its iterative deformation of the model's tet mesh (or the cage), carried to the cage."""
     name = model.label
     with ctx.progress("s3", config.resolve(name, objectives).outer_loops) as update:
         arrays, attrs = s3_record(cage, model.solid, samples, stress, objectives, config, name,
                                   progress=lambda it, info: update(it, total=float(info["fabrication_sl"])))
     ctx.log.info("s3 on the %s mesh: %s", attrs.get("on"), attrs.get("satisfaction"))
-    return arrays, attrs
+    return FieldRecord(arrays, attrs)
 
 
 def s3_oneshot_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
-                          objectives: list[str], config: S3Config, *, ctx: StepContext) -> Record:
+                          objectives: list[str], config: S3Config, *, ctx: StepContext) -> FieldRecord:
     """The one-shot S3 variant's field G: per-element rotations optimised in the deformed space, one ARAP solve."""
     with ctx.progress("s3", config.steps) as update:
         arrays, attrs = s3_oneshot_record(cage, model.solid, samples, stress, objectives, config,
                                           progress=lambda step, info: update(step, total=float(info["total"])))
     ctx.log.info("s3_oneshot: %s", attrs.get("satisfaction"))
-    return arrays, attrs
+    return FieldRecord(arrays, attrs)
 
 
-def field_blend_step(cage: Cage, field: Record, planar: float, *, ctx: StepContext) -> Record:
+def field_blend_step(cage: Cage, field: FieldRecord, planar: float, *, ctx: StepContext) -> FieldRecord:
     """The field blended toward planar layers, (1 - planar) G + planar z: the last resort against collisions."""
     ctx.log.info("field blended toward planar layers: %.3g", planar)
     return blend_record(cage, field, planar)
@@ -286,7 +287,7 @@ def field_blend_step(cage: Cage, field: Record, planar: float, *, ctx: StepConte
 
 # ---- steps 10-12: layers, toolpaths, motion, and the program ------------------------------------------------------
 
-def layers_step(model: Model, cage: Cage, field: Record, config: LayerConfig, *, ctx: StepContext) -> Layers:
+def layers_step(model: Model, cage: Cage, field: FieldRecord, config: LayerConfig, *, ctx: StepContext) -> Layers:
     """Step 10: isosurfaces of G trimmed by H <= 0, isovalues chosen for the thickness range, in print order."""
     with ctx.progress("layers", 1) as update:
         layers = slice_layers(model.solid, field_of(cage, field), config, progress=update)
@@ -336,7 +337,7 @@ def encode_program(gcode: GCode) -> Record:
 
 # ---- judging a print: the FEA of the printed part, the verification -----------------------------------------------
 
-def printed_fea_step(model: Model, fea: FEAResult, cage: Cage, field: Record, motion: Motion, *,
+def printed_fea_step(model: Model, fea: FEAResult, cage: Cage, field: FieldRecord, motion: Motion, *,
                      ctx: StepContext) -> PrintedFEA:
     """The FEA of the printed part (transversely isotropic, filaments along the printed toolpaths, layers of the
     field), with the print's strain and how far tau_max turned; a strength round samples its T from it."""
@@ -348,7 +349,7 @@ def printed_fea_step(model: Model, fea: FEAResult, cage: Cage, field: Record, mo
     return printed
 
 
-def verify_step(model: Model, fea: FEAResult, cage: Cage, field: Record, motion: Motion | None = None,
+def verify_step(model: Model, fea: FEAResult, cage: Cage, field: FieldRecord, motion: Motion | None = None,
                 layer_config: LayerConfig | None = None, toolpath_config: ToolpathConfig | None = None, *,
                 ctx: StepContext) -> Record:
     """Max strain of the part printed with planar layers and with the computed layers (transversely isotropic).

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from neuralslicer.cage import Cage
-from neuralslicer.field_step import history_of
+from neuralslicer.field_step import FieldRecord, history_of
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Model, Solid
@@ -83,7 +83,7 @@ def read_field(cage: Cage, ref: ArtifactRef) -> ScalarField:
 
 def read_field_history(ref: ArtifactRef) -> dict[str, np.ndarray]:
     """The optimisation's per-step history of a stored field (empty for the height field)."""
-    return history_of(read(ref))
+    return history_of(FieldRecord(*read(ref)))
 
 
 def read_layers(ref: ArtifactRef) -> Layers:
@@ -213,8 +213,13 @@ def read_model(ref: ArtifactRef) -> Model:
 
 
 def read_record(ref: ArtifactRef) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """A stored step's arrays and attributes as they are (a field, a verification)."""
+    """A stored step's arrays and attributes as they are (a verification)."""
     return read(ref)
+
+
+def read_field_record(ref: ArtifactRef) -> FieldRecord:
+    """A stored field as its step made it (every method's)."""
+    return FieldRecord(*read(ref))
 
 
 def read_printed_fea(ref: ArtifactRef) -> PrintedFEA:
@@ -294,9 +299,10 @@ def read_strength_round(label: str, motion: ArtifactRef, printed: ArtifactRef) -
 #: how an input of each kind of group is read for a step's core call (``tasks/steps.py``)
 DECODERS: dict[str, Callable[[ArtifactRef], Any]] = {
     "model": read_model, "surface": read_surface, "samples": read_samples, "cage": read_cage, "fea": read_fea,
-    "fea_printed": read_printed_fea, "stress_samples": read_stress, "field": read_record, "field_s3": read_record,
-    "field_s3_oneshot": read_record, "field_blend": read_record, "layers": read_layers, "toolpaths": read_toolpaths,
-    "motion": StoredMotion, "verify": read_record, "user_field": read_user_points,
+    "fea_printed": read_printed_fea, "stress_samples": read_stress, "field": read_field_record,
+    "field_s3": read_field_record, "field_s3_oneshot": read_field_record, "field_blend": read_field_record,
+    "layers": read_layers, "toolpaths": read_toolpaths, "motion": StoredMotion, "verify": read_record,
+    "user_field": read_user_points,
 }
 
 

@@ -22,6 +22,22 @@ os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
 os.environ["NEURALSLICER_API_IDLE_S"] = "0"
 
 REPO = Path(__file__).resolve().parents[1]
+#: what a Dask Nanny sets in the environment of the process that starts its worker, and never takes back
+#: (``distributed.nanny.pre-spawn-environ``)
+DASK_SPAWN_ENVIRON = ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+@pytest.fixture(autouse=True)
+def _dask_spawn_environ_undone() -> Iterator[None]:
+    """After a test that started Dask workers, the session's environment as it was: a CLI subprocess of a later test
+    would inherit ``OMP_NUM_THREADS=1`` and optimise on one torch thread, where the run it is compared with used two."""
+    saved = {k: os.environ.get(k) for k in DASK_SPAWN_ENVIRON}
+    yield
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
 
 
 @pytest.fixture(scope="session")
