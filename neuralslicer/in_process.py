@@ -18,7 +18,7 @@ from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.collision import CollisionMap
 from neuralslicer.motion.output import Motion, print_hits
 from neuralslicer.pipeline import Chain, run_chain
-from neuralslicer.step_table import StepContext, step
+from neuralslicer.step_table import StepContext, encode_cage, step
 
 T = TypeVar("T")
 LOG = "neuralslicer"
@@ -70,7 +70,7 @@ def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN
                             dict(r.printed_fea.turn)) for r in chain.rounds]
     return RunResults(
         model=name, surface=chain.surface[0], surface_attrs=chain.surface[1], samples=chain.samples, cage=cage,
-        cage_attrs={**cage.to_arrays()[1], **cage.summary()}, field=field_of(cage, chain.printed.field),
+        cage_attrs=encode_cage(cage)[1], field=field_of(cage, chain.printed.field),
         field_history=history_of(chain.printed.field),
         layers=chain.printed.layers, toolpaths=motion.toolpaths, program=motion.program, print_metrics=motion.metrics,
         collision_maps=maps, collided=np.asarray(motion.collisions.indices, np.int64), wall_s=dict(wall_s),

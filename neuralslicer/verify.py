@@ -10,7 +10,6 @@ degenerate.
 """
 from __future__ import annotations
 
-from dataclasses import fields
 from typing import Any, Callable
 
 import numpy as np
@@ -274,8 +273,7 @@ def printed_fea_of(solid: SolidLike, fea_spec: FEASpec, field: ScalarField, tool
     figures = {k: float(printed[k]) for k in ("max_strain", "max_strain_p99", "max_displacement_mm")}
     figures.update(tau_turn_median_deg=float(np.median(turn["tau_turn_deg"])),
                    tau_turn_p90_deg=float(np.percentile(turn["tau_turn_deg"], 90)))
-    kept = {f.name: getattr(result, f.name) for f in fields(FEAResult)}
-    return PrintedFEA(**kept, figures=figures, turn=turn)
+    return PrintedFEA.of(result, figures, turn)
 
 
 def stress_turn(reference: FEAResult, printed: FEAResult, field: ScalarField, top_fraction: float = 0.10

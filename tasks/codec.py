@@ -14,7 +14,7 @@ from neuralslicer.field_step import FieldRecord, history_of
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Model, Solid
-from neuralslicer.motion.collision import CollisionMap, CollisionReport, part_collisions
+from neuralslicer.motion.collision import CollisionMap, part_collisions
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.pipeline import RoundPrint, TriedPrint
 from neuralslicer.samples import SurfaceSamples
@@ -164,9 +164,9 @@ def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
 
 
 class StoredMotion:
-    """A stored print (the motion step's group) read like :class:`neuralslicer.motion.output.Motion`: each part
-    (toolpaths, program, metrics, collisions) read from the store when first used, so a step that needs one part does
-    not hold the others."""
+    """A stored print (the motion step's group) read like :class:`neuralslicer.motion.output.Motion`: each part a step
+    uses (toolpaths, program, metrics, where the head hit) read from the store when first used, so a step that needs
+    one part does not hold the others."""
 
     def __init__(self, ref: ArtifactRef) -> None:
         """The print stored as the group of ``ref``."""
@@ -189,19 +189,6 @@ class StoredMotion:
         """The print's metrics."""
         return attrs_of(self.ref)["metrics"]
 
-    @cached_property
-    def collisions(self) -> CollisionReport:
-        """The exact check's collisions (no locations where the print predates them)."""
-        names = ["collisions/indices", "collisions/kind"]
-        try:
-            arrays, _ = read(self.ref, [*names, "collisions/locations"])
-        except KeyError:
-            arrays, _ = read(self.ref, names)
-        n = len(arrays["collisions/indices"])
-        return CollisionReport(np.asarray(arrays["collisions/indices"], np.int64),
-                               np.asarray(arrays.get("collisions/locations", np.full((n, 3), np.nan))),
-                               np.asarray(arrays["collisions/kind"]))
-
     def part_collisions(self) -> tuple[np.ndarray, np.ndarray]:
         """(hits (k,3), witnesses (k,3)) of the print (:func:`read_part_collisions`)."""
         return read_part_collisions(self.ref)
@@ -210,11 +197,6 @@ class StoredMotion:
 def read_model(ref: ArtifactRef) -> Model:
     """The model step's output: the spec, its implicit solid and the model's name."""
     return Model.from_arrays(*read(ref), name=ref.model)
-
-
-def read_record(ref: ArtifactRef) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """A stored step's arrays and attributes as they are (a verification)."""
-    return read(ref)
 
 
 def read_field_record(ref: ArtifactRef) -> FieldRecord:
@@ -301,7 +283,7 @@ DECODERS: dict[str, Callable[[ArtifactRef], Any]] = {
     "model": read_model, "surface": read_surface, "samples": read_samples, "cage": read_cage, "fea": read_fea,
     "fea_printed": read_printed_fea, "stress_samples": read_stress, "field": read_field_record,
     "field_s3": read_field_record, "field_s3_oneshot": read_field_record, "field_blend": read_field_record,
-    "layers": read_layers, "toolpaths": read_toolpaths, "motion": StoredMotion, "verify": read_record,
+    "layers": read_layers, "toolpaths": read_toolpaths, "motion": StoredMotion, "verify": read,
     "user_field": read_user_points,
 }
 

@@ -341,6 +341,11 @@ class PrintedFEA(FEAResult):
     figures: dict[str, float] = field(default_factory=dict)
     turn: dict[str, np.ndarray] = field(default_factory=dict)
 
+    @classmethod
+    def of(cls, result: FEAResult, figures: dict[str, float], turn: dict[str, np.ndarray]) -> "PrintedFEA":
+        """``result`` with the print's strain figures and how tau_max turned."""
+        return cls(**{f.name: getattr(result, f.name) for f in fields(FEAResult)}, figures=figures, turn=turn)
+
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """The FEA's arrays with ``turn/*``, its attributes with the figures."""
         arrays, attrs = super().to_arrays()
@@ -351,9 +356,9 @@ class PrintedFEA(FEAResult):
         """Inverse of ``to_arrays``."""
         base = FEAResult.from_arrays(arrays, attrs)
         figures = {k: float(attrs[k]) for k in PRINTED_FIGURES if k in attrs}
+        base.info = {k: v for k, v in base.info.items() if k not in figures}
         turn = {k.split("/", 1)[1]: np.asarray(v) for k, v in arrays.items() if k.startswith("turn/")}
-        kept = {f.name: getattr(base, f.name) for f in fields(FEAResult) if f.name != "info"}
-        return cls(**kept, info={k: v for k, v in base.info.items() if k not in figures}, figures=figures, turn=turn)
+        return cls.of(base, figures, turn)
 
 
 def principal(stress: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
