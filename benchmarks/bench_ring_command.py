@@ -6,8 +6,8 @@ change) on the same machine, alternating, and its metrics.json compared key by k
                                                       [--out results/bench_ring_command.json]
 
 The command is ``neuralslicer slice neuralslicer/data/ring.tet --up y --out DIR`` (issue 30's targets: under 60 s
-fresh, under 5 s cached, on a quiet machine). Each side runs in its own checkout (``cwd`` and ``PYTHONPATH``: a
-source checkout resolves ``neuralslicer`` and its outer layers to itself) with this interpreter, the user's Prefect
+fresh, under 5 s cached, on a quiet machine). Each side runs in its own checkout (``cwd``, and
+``benchmarks/checkout_env.py``'s environment: that checkout's ``neuralslicer`` and outer layers alone) with this interpreter, the user's Prefect
 home and the cage cache in ~/.cache/neuralslicer (the run is deterministic given it). ``--cold-server``: the local
 Prefect API server left up by an earlier command is stopped before each fresh run, so that the fresh run boots its
 own (what a first command after the idle time does); without it a fresh run uses the server the last command left
@@ -29,6 +29,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from checkout_env import checkout_environ  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -60,7 +63,7 @@ def stop_left_server() -> bool:
 
 def run_once(checkout: Path, out: Path) -> dict:
     """One command in ``checkout``: wall, CPU (user + system of it and what it waited for), load, tasks."""
-    env = {**os.environ, "PYTHONPATH": str(checkout), "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
+    env = checkout_environ(checkout, {**os.environ, "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"})
     cmd = [sys.executable, "-m", "neuralslicer.cli", "slice", str(ROOT / "neuralslicer" / "data" / "ring.tet"),
            "--up", "y", "--out", str(out)]
     load_before = os.getloadavg()[0]

@@ -4,7 +4,8 @@
     python benchmarks/bench_step.py                       # median step, per-part breakdown, threads 2 then 1
     python benchmarks/bench_step.py --threads 2 --steps 20 --warmup 5
     python benchmarks/bench_step.py --cage-cache CAGE.npz     # reuse (or write) the cage there
-    PYTHONPATH=/path/to/old/tree python benchmarks/bench_step.py --label before   # another tree's step, same JSON
+    (eval "$(python benchmarks/checkout_env.py /old/tree)"; python /old/tree/benchmarks/bench_step.py --label before)
+                                                          # another tree's step, same JSON
 
 The process is set up as the command sets itself up (``GOMP_SPINCOUNT``, the allocator). The cage is built
 once by the cage step (fTetWild) and kept in ``--cage-cache``; the problem is built as the field step builds it

@@ -137,7 +137,7 @@ def slice_pipeline(spec: ModelSpec, out_dir: str, config: SliceConfig, store: st
     c = run_chain(TaskSteps(log, store), spec, config, user)
     p = c.printed
     log.run(export_task, store=store, out_dir=out_dir, model=c.model, surface=c.surface, samples=c.samples, cage=c.cage,
-            field=p.field, layers=p.layers, motion=p.motion, stress=c.stress_samples, verify=c.verify,
+            field=p.field, layers=p.layers, motion=p.motion, stress_samples=c.stress_samples, verify=c.verify,
             robot=config.robot, alpha_deg=config.alpha_deg, beta_deg=config.neural.loss.beta_deg, attempts=c.attempts,
             sr_rounds=c.rounds, toolpaths=p.toolpaths, program=c.program)
     record = provenance(spec, config, extra_files={"user_field": user_field} if user_field else None,

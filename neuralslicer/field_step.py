@@ -41,7 +41,7 @@ def height_record(cage: Cage) -> FieldRecord:
     return FieldRecord(arrays, {**attrs, "objectives": [], "steps": 0})
 
 
-def s3_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress: StressSamples | None, objectives: list[str],
+def s3_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress_samples: StressSamples | None, objectives: list[str],
               config: S3DeformConfig, name: str, progress: Progress | None = None) -> FieldRecord:
     """S3-Slicer's field: its iterative deformation of the model's tet mesh (when the model is one tet mesh, else
     the cage), carried to the cage."""
@@ -50,16 +50,16 @@ def s3_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress: StressS
     tet = next((m for m in solid.components if getattr(m, "tets", None) is not None), None)
     result = s3_field(cage.vertices, cage.tets, samples,
                       (tet.vertices, tet.tets) if tet is not None and len(solid.components) == 1 else None,
-                      stress, objectives, config, name, progress=progress)
+                      stress_samples, objectives, config, name, progress=progress)
     return FieldRecord(*result.to_arrays())
 
 
-def s3_oneshot_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress: StressSamples | None,
+def s3_oneshot_record(cage: Cage, solid: Solid, samples: SurfaceSamples, stress_samples: StressSamples | None,
                       objectives: list[str], config: S3Config, progress: Progress | None = None) -> FieldRecord:
     """The one-shot S3 variant's field: per-element rotations optimised in the deformed space, one ARAP solve."""
     from neuralslicer.baselines.s3 import optimise_s3   # torch: only when a field is optimised
 
-    result = optimise_s3(cage.vertices, cage.tets, samples, stress, objectives, config, solid.platform_z,
+    result = optimise_s3(cage.vertices, cage.tets, samples, stress_samples, objectives, config, solid.platform_z,
                          progress=progress)
     arrays, attrs = result.to_arrays()
     return FieldRecord(arrays, {**attrs, "kind": "s3_oneshot", "method": "s3_oneshot",

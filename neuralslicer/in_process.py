@@ -74,7 +74,7 @@ def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN
         field_history=history_of(chain.printed.field),
         layers=chain.printed.layers, toolpaths=motion.toolpaths, program=motion.program, print_metrics=motion.metrics,
         collision_maps=maps, collided=np.asarray(motion.collisions.indices, np.int64), wall_s=dict(wall_s),
-        stress=chain.stress_samples, verify=chain.verify,
+        stress_samples=chain.stress_samples, verify=chain.verify,
         attempts=[Attempt(a.label, field_of(cage, a.field), a.motion.metrics) for a in chain.attempts],
         strength_rounds=rounds, gcode=chain.program)
 

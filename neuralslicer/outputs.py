@@ -100,7 +100,7 @@ class RunResults:
     #: the printed print's colliding waypoints (sorted indices into ``toolpaths``)
     collided: IndexArray
     wall_s: dict[str, float]
-    stress: StressSamples | None = None
+    stress_samples: StressSamples | None = None
     verify: tuple[dict[str, np.ndarray], dict[str, float]] | None = None
     attempts: list[Attempt] = field(default_factory=list)
     strength_rounds: list[StrengthRound] = field(default_factory=list)
@@ -115,7 +115,7 @@ class RunResults:
     @cached_property
     def lpd_t(self) -> np.ndarray | None:
         """The field's LPD at the stress samples T, or None without them."""
-        return None if self.stress is None else self.field.sample(self.stress.points)[1]
+        return None if self.stress_samples is None else self.field.sample(self.stress_samples.points)[1]
 
 
 def write_ply(path: Path, mesh: trimesh.Trimesh, normals: np.ndarray | None = None) -> None:
@@ -213,8 +213,8 @@ def run_metrics(run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str,
     metrics.update({f"layers.{k}": v for k, v in run.layers.report.items()})
     metrics.update({f"loss.{k}": v for k, v in (fa.get("final") or {}).items()})
     metrics.update({f"wall_s.{k}": v for k, v in run.wall_s.items()})
-    if run.stress is not None:
-        T, lpd_t = run.stress, run.lpd_t
+    if run.stress_samples is not None:
+        T, lpd_t = run.stress_samples, run.lpd_t
         metrics["sr.beta_deg"] = beta_deg
         metrics["sr.satisfied_fraction"] = strength_satisfaction(T.tau_max, T.volumes, lpd_t, beta_deg)
         metrics["sr.satisfied_fraction_planar"] = strength_satisfaction(
@@ -265,7 +265,7 @@ def figure_jobs(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) 
         return {"Support-free angle histogram": "figures/sf_histogram.png"}
 
     def sr_histogram() -> dict[str, str]:
-        T, lpd_t = run.stress, run.lpd_t
+        T, lpd_t = run.stress_samples, run.lpd_t
         plot_angle_histogram(
             figs / "sr_histogram.png",
             {"planar": strength_angles(T.tau_max, np.tile(PLANAR, (len(T.points), 1))),
@@ -300,7 +300,7 @@ def figure_jobs(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) 
         return {"Print head collisions (red)": "figures/collisions.png"}
 
     jobs: list[tuple[float, Job]] = [(0.8, layers), (0.8, overhang), (0.1, sf_histogram)]
-    if run.stress is not None:
+    if run.stress_samples is not None:
         jobs.append((0.1, sr_histogram))
     if run.verify is not None:
         jobs.append((2.0, lambda: draw_strength_figures(figs, *run.verify)))

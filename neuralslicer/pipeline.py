@@ -84,7 +84,7 @@ def field_parameters(call: FieldCall[H]) -> tuple[str, dict[str, Any]]:
     i = call.inputs
     if call.method == "blend":
         return "field_blend", {"cage": i.cage, "field": call.blended, "planar": call.planar}
-    common = {"model": i.model, "cage": i.cage, "samples": i.samples, "stress": i.stress_samples,
+    common = {"model": i.model, "cage": i.cage, "samples": i.samples, "stress_samples": i.stress_samples,
               "objectives": list(call.objectives), "config": call.config}
     if call.method in ("s3", "s3_oneshot"):
         return f"field_{call.method}", common

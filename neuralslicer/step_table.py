@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
+from types import MappingProxyType
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ContextManager, Protocol
 
@@ -102,7 +103,8 @@ class Step:
     entry of the machine's content cache, where the step's output is also kept, across stores (the cage: fTetWild's
     draw is not the same everywhere); resumable : gets checkpoints; device : the torch device it computes on, from
     its parameters (the Prefect runner tags GPU steps); retries : Prefect's retries of its task (its default when
-    None); family : the role it fills in a chain (every method of the field is a "field"), its wall time's name.
+    None); family : the role it fills in a chain (every method of the field is a "field"), its wall time's name;
+    key_names : parameters keyed under an earlier name (a parameter renamed in the code keeps its stores' keys).
     """
 
     name: str
@@ -119,6 +121,7 @@ class Step:
     device: Callable[[dict[str, Any]], str | None] | None = None
     retries: int | None = None
     family: str = ""
+    key_names: Mapping[str, str] = field(default_factory=dict, hash=False)
 
     @property
     def role(self) -> str:
@@ -213,7 +216,7 @@ def stress_samples_step(model: Model, fea: FEAResult, *, ctx: StepContext) -> St
 
 # ---- steps 4-9: the field, by each method ------------------------------------------------------------------------
 
-def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
+def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress_samples: StressSamples | None,
                objectives: list[str], config: NeuralConfig, user_field: tuple[np.ndarray, np.ndarray] | None = None,
                refine_prints: list[Motion] | None = None, warm_start: FieldRecord | None = None, *,
                ctx: StepContext) -> FieldRecord:
@@ -250,7 +253,7 @@ def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress:
             if ctx.on_step is not None:
                 ctx.on_step(step, info)
 
-        result = optimise_for_solid(model.solid, cage.vertices, cage.tets, samples, stress, objectives, config,
+        result = optimise_for_solid(model.solid, cage.vertices, cage.tets, samples, stress_samples, objectives, config,
                                     refine=refine, warm_start=start, progress=progress, **user, **saved)
     ctx.log.info("optimised in %d steps (%.1f s): %s", result.steps, result.wall_time_s, result.final)
     arrays, attrs = result.to_arrays()
@@ -258,22 +261,22 @@ def neural_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress:
     return FieldRecord(arrays, {**attrs, "resumed_from_step": resumed})
 
 
-def s3_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
+def s3_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress_samples: StressSamples | None,
                   objectives: list[str], config: S3DeformConfig, *, ctx: StepContext) -> FieldRecord:
     """S3-Slicer's field G: its iterative deformation of the model's tet mesh (or the cage), carried to the cage."""
     name = model.label
     with ctx.progress("s3", config.resolve(name, objectives).outer_loops) as update:
-        arrays, attrs = s3_record(cage, model.solid, samples, stress, objectives, config, name,
+        arrays, attrs = s3_record(cage, model.solid, samples, stress_samples, objectives, config, name,
                                   progress=lambda it, info: update(it, total=float(info["fabrication_sl"])))
     ctx.log.info("s3 on the %s mesh: %s", attrs.get("on"), attrs.get("satisfaction"))
     return FieldRecord(arrays, attrs)
 
 
-def s3_oneshot_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress: StressSamples | None,
+def s3_oneshot_field_step(model: Model, cage: Cage, samples: SurfaceSamples, stress_samples: StressSamples | None,
                           objectives: list[str], config: S3Config, *, ctx: StepContext) -> FieldRecord:
     """The one-shot S3 variant's field G: per-element rotations optimised in the deformed space, one ARAP solve."""
     with ctx.progress("s3", config.steps) as update:
-        arrays, attrs = s3_oneshot_record(cage, model.solid, samples, stress, objectives, config,
+        arrays, attrs = s3_oneshot_record(cage, model.solid, samples, stress_samples, objectives, config,
                                           progress=lambda step, info: update(step, total=float(info["total"])))
     ctx.log.info("s3_oneshot: %s", attrs.get("satisfaction"))
     return FieldRecord(arrays, attrs)
@@ -372,6 +375,9 @@ def _model_key(p: dict[str, Any]) -> dict[str, Any]:
     return {"name": model_name(p["spec"]), "content": spec_digest(p["spec"])}
 
 
+#: T was the field steps' (and the export's) parameter ``stress``: their keys still name it so
+STRESS_SAMPLES_KEY: Mapping[str, str] = MappingProxyType({"stress_samples": "stress"})
+
 #: every step of the chain, in the order a slice runs them (docs/ARCHITECTURE.md lists them with the paper's names)
 STEPS: tuple[Step, ...] = (
     Step("model", "step 1: the implicit solid H", "1", model_step, encode_to_arrays, key=("name", "content"),
@@ -382,10 +388,12 @@ STEPS: tuple[Step, ...] = (
     Step("fea", "the load case: isotropic voxel FEA", "1", fea_step, encode_to_arrays),
     Step("stress_samples", "stress samples T", "1", stress_samples_step, encode_to_arrays),
     Step("field", "steps 4-9: the neural field G", "4", neural_field_step, identity, resumable=True,
-         device=_neural_device, family="field"),
-    Step("field_s3", "the S3-Slicer baseline's field", "3", s3_field_step, identity, family="field"),
+         device=_neural_device, family="field", key_names=STRESS_SAMPLES_KEY),
+    Step("field_s3", "the S3-Slicer baseline's field", "3", s3_field_step, identity, family="field",
+         key_names=STRESS_SAMPLES_KEY),
     Step("field_s3_oneshot", "the one-shot S3 variant's field", "1", s3_oneshot_field_step, identity,
-         device=lambda p: p["config"].device if p.get("config") is not None else "auto", family="field"),
+         device=lambda p: p["config"].device if p.get("config") is not None else "auto", family="field",
+         key_names=STRESS_SAMPLES_KEY),
     Step("field_blend", "the field blended toward planar layers", "1", field_blend_step, identity, family="field"),
     Step("layers", "step 10: curved layers", "5", layers_step, encode_to_arrays),
     Step("toolpaths", "step 11: toolpaths", "13", toolpaths_step, encode_to_arrays),

@@ -65,7 +65,7 @@ def read_samples(ref: ArtifactRef) -> SurfaceSamples:
     return SurfaceSamples.from_arrays(*read(ref))
 
 
-def read_stress(ref: ArtifactRef) -> StressSamples:
+def read_stress_samples(ref: ArtifactRef) -> StressSamples:
     """Stress samples T."""
     return StressSamples.from_arrays(*read(ref))
 
@@ -237,7 +237,7 @@ def store_user_field(store: str, model: str, path: str) -> ArtifactRef:
 
 
 def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef,
-             layers: ArtifactRef, motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None,
+             layers: ArtifactRef, motion: ArtifactRef, stress_samples: ArtifactRef | None, verify: ArtifactRef | None,
              attempts: list[TriedPrint[ArtifactRef]],
              sr_rounds: list[RoundPrint[ArtifactRef]] | None = None,
              toolpaths: ArtifactRef | None = None, program_ref: ArtifactRef | None = None) -> RunResults:
@@ -245,7 +245,7 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
     from neuralslicer.outputs import Attempt, RunResults
 
     refs = {"model": model, "surface": surface, "samples": samples, "cage": cage, "field": field, "layers": layers,
-            "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress, "verify": verify}
+            "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress_samples, "verify": verify}
     c = read_cage(cage)
     surface_mesh, surface_attrs = read_surface(surface)
     # the G-code comes from the store: of the program, the export reads what it draws
@@ -261,7 +261,7 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
         cage_attrs=attrs_of(cage), field=read_field(c, field), field_history=read_field_history(field),
         layers=read_layers(layers), toolpaths=tp, program=program, print_metrics=print_metrics,
         collision_maps=maps, collided=collided, wall_s={k: a["wall_s"] for k, a in step_attrs(refs).items()},
-        stress=read_stress(stress) if stress is not None else None,
+        stress_samples=read_stress_samples(stress_samples) if stress_samples is not None else None,
         verify=read(verify) if verify is not None else None,
         attempts=[Attempt(a.label, read_field(c, a.field), attrs_of(a.motion)["metrics"]) for a in attempts],
         strength_rounds=[read_strength_round(r.label, r.motion, r.printed_fea) for r in sr_rounds or []],
@@ -281,7 +281,7 @@ def read_strength_round(label: str, motion: ArtifactRef, printed: ArtifactRef) -
 #: how an input of each kind of group is read for a step's core call (``tasks/steps.py``)
 DECODERS: dict[str, Callable[[ArtifactRef], Any]] = {
     "model": read_model, "surface": read_surface, "samples": read_samples, "cage": read_cage, "fea": read_fea,
-    "fea_printed": read_printed_fea, "stress_samples": read_stress, "field": read_field_record,
+    "fea_printed": read_printed_fea, "stress_samples": read_stress_samples, "field": read_field_record,
     "field_s3": read_field_record, "field_s3_oneshot": read_field_record, "field_blend": read_field_record,
     "layers": read_layers, "toolpaths": read_toolpaths, "motion": StoredMotion, "verify": read,
     "user_field": read_user_points,

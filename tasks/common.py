@@ -6,8 +6,8 @@ import functools
 import inspect
 import json
 import time
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from prefect import task
@@ -24,15 +24,19 @@ T = TypeVar("T")
 CACHED = "Cached"
 
 
-def keyed(parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> dict[str, Any]:
-    """The parameters a step's output digest covers (not the store, not ``exclude``)."""
+def keyed(parameters: dict[str, Any], exclude: tuple[str, ...] = (),
+          key_names: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The parameters a step's output digest covers (not the store, not ``exclude``), each under its name in the key
+    (``key_names``: a renamed parameter keeps the name it had, so stores written before keep their keys)."""
     skip = {"store", *exclude}
-    return {k: v for k, v in parameters.items() if k not in skip}
+    names = key_names or {}
+    return {names.get(k, k): v for k, v in parameters.items() if k not in skip}
 
 
-def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = ()) -> ArtifactRef:
+def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tuple[str, ...] = (),
+               key_names: Mapping[str, str] | None = None) -> ArtifactRef:
     """The ref a step writes for these parameters: path `<model>/<step>/<digest>` in the given store."""
-    key = digest(step, version, keyed(parameters, exclude))
+    key = digest(step, version, keyed(parameters, exclude, key_names))
     model = parameters.get("name") or next(v.model for v in parameters.values() if isinstance(v, ArtifactRef))
     return ArtifactRef(store=str(parameters["store"]), path=f"{model}/{step}/{key}", digest=key)
 
@@ -40,7 +44,8 @@ def output_ref(step: str, version: str, parameters: dict[str, Any], exclude: tup
 @dataclass(frozen=True)
 class PipelineStep:
     """How a pipeline task names and writes its output: step name, code version, parameters left out of the key, extra
-    validity check, the step's function and when it runs in a process of its own."""
+    validity check, the step's function, when it runs in a process of its own and the parameters keyed under
+    another name."""
 
     step: str
     version: str
@@ -49,6 +54,7 @@ class PipelineStep:
     valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None
     fn: Callable[..., tuple[dict, dict]] | None = None
     isolate: Callable[[dict[str, Any]], bool] | None = None
+    key_names: Mapping[str, str] = field(default_factory=dict, hash=False)
 
     def bind(self, parameters: dict[str, Any]) -> dict[str, Any]:
         """All parameters of a call, defaults included."""
@@ -58,7 +64,7 @@ class PipelineStep:
 
     def output(self, parameters: dict[str, Any]) -> ArtifactRef:
         """The output ref for these parameters."""
-        return output_ref(self.step, self.version, self.bind(parameters), self.exclude)
+        return output_ref(self.step, self.version, self.bind(parameters), self.exclude, self.key_names)
 
     def done(self, parameters: dict[str, Any]) -> bool:
         """True when the output exists in the store (and passes the validity check)."""
@@ -68,7 +74,7 @@ class PipelineStep:
     def key_record(self, parameters: dict[str, Any]) -> dict[str, Any]:
         """What the output's digest covers, kept in its attributes (``neuralslicer explain`` compares two of them):
         the code version, the parameters in canonical form (inputs by digest) and the store path of each input."""
-        kept = keyed(self.bind(parameters), self.exclude)
+        kept = keyed(self.bind(parameters), self.exclude, self.key_names)
         return {"version": self.version, "parameters": json.loads(json.dumps(canonical(kept), default=str)),
                 "inputs": {k: v.path for k, v in kept.items() if isinstance(v, ArtifactRef)}}
 
@@ -129,6 +135,7 @@ def pipeline_task(
     exclude: tuple[str, ...] = (),
     valid: Callable[[ArtifactRef, dict[str, Any]], bool] | None = None,
     isolate: Callable[[dict[str, Any]], bool] | None = None,
+    key_names: Mapping[str, str] | None = None,
     **task_options: Any,
 ) -> Callable[[Callable[..., tuple[dict, dict]]], Any]:
     """Prefect task for one pipeline step.
@@ -140,12 +147,13 @@ def pipeline_task(
     in another parameter). The task is idempotent: when its output group exists it does no work and its state is ``Cached`` (the store is
     the cache; Prefect keeps no record of the result). `isolate`: for the
     call's parameters, whether the step runs in a process of its own (``neuralslicer/tasks/isolate.py``).
+    `key_names`: parameters keyed under an earlier name (a parameter renamed in the code keeps its stores' keys).
     """
 
     def decorate(fn: Callable[..., tuple[dict, dict]]) -> Any:
         signature = inspect.signature(fn)
         public = signature.replace(parameters=[p for n, p in signature.parameters.items() if n != "out"])
-        pipeline = PipelineStep(step, version, public, exclude, valid, fn, isolate)
+        pipeline = PipelineStep(step, version, public, exclude, valid, fn, isolate, dict(key_names or {}))
 
         @functools.wraps(fn)
         def body(*args: Any, **kwargs: Any) -> ArtifactRef | State:

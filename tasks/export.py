@@ -10,6 +10,7 @@ from neuralslicer.storage import ArtifactRef
 from neuralslicer.tasks.codec import read_run
 from neuralslicer.tasks.common import pipeline_task
 from neuralslicer.tasks.isolate import large_print
+from neuralslicer.step_table import STRESS_SAMPLES_KEY
 
 STAMP = ".neuralslicer-export"
 
@@ -21,10 +22,10 @@ def _export_current(out: ArtifactRef, params: dict[str, Any]) -> bool:
 
 
 @pipeline_task("export", version="8", exclude=(), valid=_export_current,
-               isolate=large_print("motion", "toolpaths/xyz"))
+               isolate=large_print("motion", "toolpaths/xyz"), key_names=STRESS_SAMPLES_KEY)
 def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, surface: ArtifactRef,
                 samples: ArtifactRef, cage: ArtifactRef, field: ArtifactRef, layers: ArtifactRef,
-                motion: ArtifactRef, stress: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,
+                motion: ArtifactRef, stress_samples: ArtifactRef | None, verify: ArtifactRef | None, robot: bool,
                 alpha_deg: float, beta_deg: float, attempts: list[TriedPrint[ArtifactRef]] | None = None,
                 sr_rounds: list[RoundPrint[ArtifactRef]] | None = None,
                 toolpaths: ArtifactRef | None = None, program: ArtifactRef | None = None) -> tuple[dict, dict]:
@@ -32,7 +33,7 @@ def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, 
     G-code of ``program``), metrics.json, report.md and figures to out_dir."""
     from neuralslicer.outputs import write_outputs   # the report's plotting libraries: only when exporting
 
-    run = read_run(model, surface, samples, cage, field, layers, motion, stress, verify, attempts or [], sr_rounds or [],
+    run = read_run(model, surface, samples, cage, field, layers, motion, stress_samples, verify, attempts or [], sr_rounds or [],
                    toolpaths, program)
     metrics = write_outputs(out_dir, run, alpha_deg, beta_deg, robot)
     write_text_atomic(Path(out_dir) / STAMP, out.digest)

@@ -95,7 +95,7 @@ def step_task(s: Step) -> Any:
     """The Prefect task of a step of the table."""
     options = {} if s.retries is None else {"retries": s.retries}
     return pipeline_task(s.name, s.version, exclude=s.exclude, isolate=large_print(*s.large) if s.large else None,
-                         **options)(_body(s))
+                         key_names=s.key_names, **options)(_body(s))
 
 
 #: the task of every step, by the step's name

@@ -72,3 +72,29 @@ def test_constraints_pin_every_dependency_within_its_range() -> None:
         assert pin is not None, f"{req.name} has no pin in constraints.txt"
         assert req.specifier.contains(pin, prereleases=True), f"{req.name}=={pin} is outside {req.specifier}"
         assert len(req.specifier) >= 1 and not any(s.operator == "==" for s in req.specifier), f"{req}: a range, not a pin"
+
+
+def test_another_checkout_runs_alone_through_checkout_env(tmp_path: Path) -> None:
+    """benchmarks/checkout_env.py: a subprocess imports the other checkout's core and outer layers (mapped as its
+    pyproject.toml says), not this editable install's, and so do the processes it starts."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        from checkout_env import checkout_environ
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    other = tmp_path / "before"
+    for folder in ("neuralslicer", "tasks", "storage"):
+        (other / folder).mkdir(parents=True)
+        (other / folder / "__init__.py").write_text(f"WHICH = 'before/{folder}'\n")
+    (other / "tasks" / "steps.py").write_text("from neuralslicer.storage import WHICH as STORE\n")
+    (other / "pyproject.toml").write_text('[tool.setuptools.package-dir]\n"neuralslicer.tasks" = "tasks"\n'
+                                          '"neuralslicer.storage" = "storage"\n')
+    probe = ("import neuralslicer, neuralslicer.tasks.steps as s, neuralslicer.storage as st; "
+             "print(neuralslicer.WHICH, s.STORE, st.__file__)")
+    child = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {probe!r}], check=True)"
+    for code in (probe, child):
+        done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=checkout_environ(other),
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-3000:]
+        which, store, where = done.stdout.split()
+        assert (which, store) == ("before/neuralslicer", "before/storage") and Path(where).is_relative_to(other)

@@ -159,7 +159,7 @@ def test_draw_figures_embeds_the_operator_pictures(tmp_path: Path, cap_toolpaths
     nozzle = SimpleNamespace(bead_thickness_mm=(0.15, 1.2))
     run = SimpleNamespace(
         samples=samples, lpd_b=normals, layers=SimpleNamespace(meshes=cap_stack(6, 0.5, 6.0, 35.0, 4)),
-        toolpaths=tp, program=SimpleNamespace(profile=SimpleNamespace(nozzle=nozzle)), stress=None, verify=None,
+        toolpaths=tp, program=SimpleNamespace(profile=SimpleNamespace(nozzle=nozzle)), stress_samples=None, verify=None,
         strength_rounds=[],
         field_history={}, collision_maps={"printed": CollisionMap.of(tp.xyz, np.zeros(len(tp), bool))},
         print_metrics={"beads": bead_summary(tp, nozzle.bead_thickness_mm)})

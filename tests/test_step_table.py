@@ -36,7 +36,7 @@ def _parameters() -> dict[str, dict[str, Any]]:
     machine = load_profile(c.machine)
     r = lambda kind: ArtifactRef("/s", f"part/{kind}/d{kind}", f"d{kind}")  # noqa: E731
     fea_of = {"model": r("model"), "fea": r("fea"), "cage": r("cage"), "field": r("field")}
-    field_in = {"model": r("model"), "cage": r("cage"), "samples": r("samples"), "stress": None}
+    field_in = {"model": r("model"), "cage": r("cage"), "samples": r("samples"), "stress_samples": None}
     return {
         "model": {"name": "part", "spec": None, "content": "abc"}, "surface": {"model": r("model")},
         "samples": {"model": r("model"), "config": c.samples},
@@ -61,6 +61,30 @@ def test_every_step_keeps_the_cache_key_of_its_hand_written_task() -> None:
     assert set(parameters) == set(BY_NAME) == set(TASKS)
     made = {name: TASKS[name].pipeline.output({"store": "/s", **p}).path for name, p in parameters.items()}
     assert made == KEYS_BEFORE
+
+
+#: the field steps' and the export's keys with stress samples T given, from before T's parameter was renamed from
+#: ``stress`` to ``stress_samples`` (the keys still name it ``stress``)
+KEYS_WITH_T = {"field": "part/field/0311b337d9c9110ada35", "field_s3": "part/field_s3/d75fea3b5eb81746451f",
+               "field_s3_oneshot": "part/field_s3_oneshot/29df056f8e77ae80397b",
+               "export": "part/export/2c50068da4b861399fd3"}
+
+
+def test_a_renamed_parameter_keeps_its_key() -> None:
+    from neuralslicer.tasks.export import export_task
+
+    c = SliceConfig()
+    r = lambda kind: ArtifactRef("/s", f"part/{kind}/d{kind}", f"d{kind}")  # noqa: E731
+    base = {"store": "/s", "model": r("model"), "cage": r("cage"), "samples": r("samples"),
+            "stress_samples": r("stress_samples"), "objectives": ["sf", "sr"]}
+    made = {name: TASKS[name].pipeline.output({**base, "config": cfg}).path
+            for name, cfg in (("field", c.neural), ("field_s3", c.s3), ("field_s3_oneshot", c.s3_oneshot))}
+    export = {"store": "/s", "out_dir": "/o", "verify": None, "robot": False, "alpha_deg": 45.0, "beta_deg": 20.0,
+              **{k: r(k) for k in ("model", "surface", "samples", "cage", "field", "layers", "motion", "stress_samples")}}
+    made["export"] = export_task.pipeline.output(export).path
+    assert made == KEYS_WITH_T
+    key = TASKS["field"].pipeline.key_record({**base, "config": c.neural})
+    assert key["inputs"]["stress"] == "part/stress_samples/dstress_samples" and "stress_samples" not in key["inputs"]
 
 
 def test_a_task_has_its_core_functions_parameters_and_every_stored_kind_a_reader() -> None:

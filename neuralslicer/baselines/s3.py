@@ -140,7 +140,7 @@ def optimise_s3(
     cage_vertices: np.ndarray,
     cage_tets: np.ndarray,
     samples: SurfaceSamples,
-    stress: StressSamples | None = None,
+    stress_samples: StressSamples | None = None,
     objectives: Iterable[str] = ("sf",),
     config: S3Config | None = None,
     platform_z: float | None = None,
@@ -151,7 +151,7 @@ def optimise_s3(
     Parameters
     ----------
     cage_vertices : (n, 3) float64, cage_tets : (m, 4) int64 -- the cage C (build frame, z up).
-    samples : the surface samples B (platform points are left out of L_SF); stress : the stress
+    samples : the surface samples B (platform points are left out of L_SF); stress_samples : the stress
         samples T (optional, used by 'sr').
     objectives : 'sf' and/or 'sr'; others (po, gc, ca) are not S3's and are recorded as ignored.
     config : S3Config (defaults documented there); platform_z : platform height (ARAP pinning only).
@@ -164,7 +164,7 @@ def optimise_s3(
     t0 = time.perf_counter()
     objectives = list(objectives)
     config = (config or S3Config()).for_objectives(objectives)
-    problem = FieldProblem(cage_vertices, cage_tets, samples, stress, config.neural_config(), platform_z)
+    problem = FieldProblem(cage_vertices, cage_tets, samples, stress_samples, config.neural_config(), platform_z)
     objective = S3Objective(problem, config)
     m = len(problem.geometry.tets)
     raw = torch.zeros((m, 4), dtype=problem.dtype, device=problem.device)

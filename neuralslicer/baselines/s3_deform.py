@@ -461,18 +461,18 @@ def transfer_field(vertices: np.ndarray, tets: np.ndarray, G: np.ndarray, points
     return out
 
 
-def stress_tets(vertices: np.ndarray, tets: np.ndarray, stress: StressSamples) -> tuple[np.ndarray, np.ndarray]:
+def stress_tets(vertices: np.ndarray, tets: np.ndarray, stress_samples: StressSamples) -> tuple[np.ndarray, np.ndarray]:
     """S3's strength-critical tets from the stress samples T: (mask (m,), tau (m,3)), tau the volume-weighted mean of
     the sign-aligned tau_max of the samples each tet contains (S3 marks its top-stress elements from its own FEA)."""
-    idx, _ = TetLocator(vertices, tets).locate(stress.points)
+    idx, _ = TetLocator(vertices, tets).locate(stress_samples.points)
     ok = idx >= 0
-    tau = np.asarray(stress.tau_max, dtype=np.float64)[ok]
+    tau = np.asarray(stress_samples.tau_max, dtype=np.float64)[ok]
     ref = np.zeros((len(tets), 3))
     first = np.unique(idx[ok], return_index=True)
     ref[first[0]] = tau[first[1]]
     tau = tau * np.where(np.einsum("ij,ij->i", tau, ref[idx[ok]]) < 0, -1.0, 1.0)[:, None]
     acc = np.zeros((len(tets), 3))
-    np.add.at(acc, idx[ok], tau * np.asarray(stress.volumes, dtype=np.float64)[ok, None])
+    np.add.at(acc, idx[ok], tau * np.asarray(stress_samples.volumes, dtype=np.float64)[ok, None])
     mask = np.linalg.norm(acc, axis=1) > 0
     return mask, _unit(acc)
 
@@ -521,7 +521,7 @@ def s3_field(
     cage_tets: np.ndarray,
     samples: SurfaceSamples,
     model_tets: tuple[np.ndarray, np.ndarray] | None = None,
-    stress: StressSamples | None = None,
+    stress_samples: StressSamples | None = None,
     objectives: list[str] | tuple[str, ...] = ("sf",),
     config: S3DeformConfig | None = None,
     model_name: str = "",
@@ -538,7 +538,7 @@ def s3_field(
     on = "model" if (base.on == "model" and model_tets is not None) else "cage"
     V, T = (model_tets if on == "model" else (cage_vertices, cage_tets))
     V, T = np.asarray(V, dtype=np.float64), orient_tets(np.asarray(V, dtype=np.float64), np.asarray(T, dtype=np.int64))
-    sr, tau = stress_tets(V, T, stress) if (stress is not None and "sr" in objectives) else (None, None)
+    sr, tau = stress_tets(V, T, stress_samples) if (stress_samples is not None and "sr" in objectives) else (None, None)
     deformation = s3_deform(V, T, cfg, sr, tau, progress)
     G = deformation.G if on == "cage" else transfer_field(V, T, deformation.G, cage_vertices)
     grad = np.einsum("ei,eij->ej", G[cage_tets], barycentric_gradients(cage_vertices, cage_tets))

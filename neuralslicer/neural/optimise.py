@@ -366,7 +366,7 @@ def optimise_field(
     cage_vertices: np.ndarray,
     cage_tets: np.ndarray,
     samples: SurfaceSamples,
-    stress: StressSamples | None = None,
+    stress_samples: StressSamples | None = None,
     config: NeuralConfig | None = None,
     platform_z: float | None = None,
     user_field: np.ndarray | None = None,
@@ -384,7 +384,7 @@ def optimise_field(
     ----------
     cage_vertices : (n, 3) float64, cage_tets : (m, 4) int64 -- the cage C (build frame).
     samples : the surface samples B (points on the platform are kept as kNN positions and left
-        out of L_SF and L_PO); stress : the stress samples T (optional).
+        out of L_SF and L_PO); stress_samples : the stress samples T (optional).
     config : NeuralConfig (defaults documented there); platform_z : platform height (pinning,
         heat-method source); user_field / user_field_points : the 'user' initial guess, values at
         cage vertices (n,) or at the given points.
@@ -405,7 +405,7 @@ def optimise_field(
     config = config or NeuralConfig()
     t0 = time.perf_counter()
     with deterministic_algorithms():
-        problem = FieldProblem(cage_vertices, cage_tets, samples, stress, config, platform_z, collision_pool,
+        problem = FieldProblem(cage_vertices, cage_tets, samples, stress_samples, config, platform_z, collision_pool,
                                solid_tets)
         st = LoopState.start(problem)
         if warm_start is not None:
@@ -448,7 +448,7 @@ def final_corrections(problem: FieldProblem, st: LoopState, rounds: int = 3) -> 
 
 
 def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
-                       stress: StressSamples | None, objectives: list[str], config: NeuralConfig,
+                       stress_samples: StressSamples | None, objectives: list[str], config: NeuralConfig,
                        refine: Refinement | None = None, warm_start: Mapping[str, np.ndarray] | None = None,
                        **options: Any) -> FieldResult:
     """The field step: ``optimise_field`` for the objectives asked for, with L_GC's pool of points drawn
@@ -491,7 +491,7 @@ def optimise_for_solid(solid: Solid, cage_vertices: np.ndarray, cage_tets: np.nd
         options["warm_start"] = warm_start
     if pool is not None or cfg.loss.tilt_bound_deg is not None:
         options["solid_tets"] = solid_tets(solid, cage_vertices, cage_tets)
-    result = optimise_field(cage_vertices, cage_tets, samples, stress, config=cfg, platform_z=solid.platform_z,
+    result = optimise_field(cage_vertices, cage_tets, samples, stress_samples, config=cfg, platform_z=solid.platform_z,
                             collision_pool=pool, **options)
     result.attrs.update(objectives=list(objectives), kind="neural")
     if cfg.loss.tilt_bound_deg is not None:

@@ -23,7 +23,7 @@ class FieldProblem:
     """Everything fixed during the optimisation: cage, ARAP factor, samples mapped to cage tets."""
 
     def __init__(self, cage_vertices: np.ndarray, cage_tets: np.ndarray, samples: SurfaceSamples,
-                 stress: StressSamples | None, config: NeuralConfig, platform_z: float | None,
+                 stress_samples: StressSamples | None, config: NeuralConfig, platform_z: float | None,
                  collision_pool: CollisionPool | None = None, solid_tets: np.ndarray | None = None) -> None:
         """Map B (and T) to the cage, factor the ARAP system, build the collision terms. ``solid_tets``: the cage
         tets that hold solid (m,) bool, for L_GC's floor term (besides the tets holding B or pool points)."""
@@ -71,10 +71,10 @@ class FieldProblem:
         else:
             self.po_length = 1.0
         # stress samples T
-        if stress is not None and len(stress.points):
-            self.t_tet = g.locate(np.asarray(stress.points, dtype=np.float64).reshape(-1, 3))
-            self.t_tau = np.asarray(stress.tau_max, dtype=np.float64)
-            self.t_volumes = np.asarray(stress.volumes, dtype=np.float64)
+        if stress_samples is not None and len(stress_samples.points):
+            self.t_tet = g.locate(np.asarray(stress_samples.points, dtype=np.float64).reshape(-1, 3))
+            self.t_tau = np.asarray(stress_samples.tau_max, dtype=np.float64)
+            self.t_volumes = np.asarray(stress_samples.volumes, dtype=np.float64)
         else:
             self.t_tet = np.zeros(0, np.int64)
             self.t_tau = np.zeros((0, 3))

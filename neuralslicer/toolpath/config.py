@@ -78,12 +78,12 @@ class ToolpathConfig(BaseModel):
     #: patches whose area is below this (mm^2) are skipped (marching-tet slivers).
     min_patch_area: float = Field(0.05, ge=0)
 
-    def resolved(self, stress: bool) -> ToolpathConfig:
-        """This config with ``infill: auto`` decided: ``stress`` when a stress field is there to follow, else
-        ``zigzag``."""
+    def resolved(self, has_stress: bool) -> ToolpathConfig:
+        """This config with ``infill: auto`` decided: ``stress`` when a stress field is there to follow
+        (``has_stress``), else ``zigzag``."""
         if self.infill != "auto":
             return self
-        return self.model_copy(update={"infill": "stress" if stress else "zigzag"})
+        return self.model_copy(update={"infill": "stress" if has_stress else "zigzag"})
 
 
 def load_toolpath_config(path: str | Path) -> ToolpathConfig:

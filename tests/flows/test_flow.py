@@ -329,7 +329,7 @@ def test_collisions_of_the_print_refine_the_collision_term(tmp_path, small_part)
     hits, witnesses = read_part_collisions(ref["motion"])
     assert len(hits) > 0 and np.isfinite(witnesses).all()
     neural = SliceConfig.from_yaml(cfg).neural
-    refined = field_task(store=root, model=ref["model"], cage=ref["cage"], samples=ref["samples"], stress=None,
+    refined = field_task(store=root, model=ref["model"], cage=ref["cage"], samples=ref["samples"], stress_samples=None,
                          objectives=["sf", "gc"], config=neural, refine_prints=[ref["motion"]], warm_start=ref["field"])
     attrs = store.attrs(refined.path)
     record = attrs["refinement"]
