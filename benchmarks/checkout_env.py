@@ -6,10 +6,10 @@ editable install of this checkout would answer for them. ``checkout_environ(chec
 folders as its own pyproject.toml says, with the checkout first on ``PYTHONPATH``: that process and every process it
 starts (a large print's steps, the cage's fTetWild, the API server) import the other checkout alone.
 
-    env = checkout_environ(Path("/tmp/before"))
-    subprocess.run([sys.executable, "-m", "neuralslicer.cli", "slice", ...], env=env, cwd="/tmp/before")
+    env = checkout_environ(Path("../before"))
+    subprocess.run([sys.executable, "-m", "neuralslicer.cli", "slice", ...], env=env, cwd="../before")
 
-or from a shell: ``eval "$(python benchmarks/checkout_env.py /tmp/before)"`` exports the same ``PYTHONPATH``.
+or from a shell: ``eval "$(python benchmarks/checkout_env.py ../before)"`` exports the same ``PYTHONPATH``.
 """
 from __future__ import annotations
 
