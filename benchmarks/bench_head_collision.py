@@ -163,7 +163,7 @@ def ablation(models: list[str]) -> dict:
         maps: dict = {}
         out[name] = {v: _slice(model, v, strength, extra, maps) for v in VARIANTS}
         _merge("ablation", out)
-        from neuralslicer.report import plot_collision_map
+        from neuralslicer.run.report import plot_collision_map
 
         plot_collision_map(RESULTS.with_name(f"bench_head_collision_{name}.png"), maps)
     print("| model | variant | collisions (first print -> printed) | overhang | SR | steps | time s |")

@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_stages.py [ring|bracket ...]   (default: ring bracket)
 
-Part 1 runs the core pipeline in-process (``neuralslicer.pipeline.run_chain`` on in-process steps: no Prefect, no
+Part 1 runs the core pipeline in-process (``neuralslicer.run.pipeline.run_chain`` on in-process steps: no Prefect, no
 store), step by step, sampling the process's resident memory every 20 ms: model (implicit solid), solid, samples,
 cage, FEA and stress samples (with an fea block), optimisation (with its step count and time per step; every field
 the collision policy asks for), layers, toolpaths, motion (collision check, travel lift and tilt, motion planning),
@@ -98,10 +98,10 @@ def core_stages(name: str, tmp: Path) -> tuple[list[dict], dict]:
     from scipy.spatial import cKDTree
 
     from neuralslicer.config import SliceConfig
-    from neuralslicer.in_process import InProcessSteps
+    from neuralslicer.run.in_process import InProcessSteps
     from neuralslicer.model.spec import load_spec, spec_for_file
-    from neuralslicer.pipeline import run_chain
-    from neuralslicer.report import plot_layers_3d, plot_thickness_map
+    from neuralslicer.run.pipeline import run_chain
+    from neuralslicer.run.report import plot_layers_3d, plot_thickness_map
 
     args, over = MODELS[name]
     spec = spec_for_file(args[1], "y") if name == "ring" else load_spec(args[1])

@@ -26,7 +26,7 @@ def cmd_slice(args: argparse.Namespace) -> int:
     if not model.exists():
         raise InputError(model, "no such file")
     api = start_local_api()  # boots in the background while the model is read and checked
-    from neuralslicer.preflight import check_slice
+    from neuralslicer.run.preflight import check_slice
     from neuralslicer.storage import default_store
 
     config = build_config(args)
@@ -64,7 +64,7 @@ def warm_imports(config: Any, spec: Any) -> None:
     anyway, and the run's tasks then find them imported."""
     import neuralslicer.gcode.writers  # noqa: F401 - the program step
     import neuralslicer.motion.plan  # noqa: F401 - the toolpaths and motion steps: the planner, scipy
-    import neuralslicer.outputs  # noqa: F401 - the export: matplotlib, pyvista
+    import neuralslicer.run.outputs  # noqa: F401 - the export: matplotlib, pyvista
 
     if config.objectives_for(spec):
         import neuralslicer.neural.optimise  # noqa: F401 - torch

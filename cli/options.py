@@ -132,9 +132,9 @@ def build_config(options: argparse.Namespace) -> SliceConfig:
         raise InputError(where, exc.message) from None
 
 
-def cli_names():  # noqa: ANN201 - neuralslicer.preflight.Names, imported when a command runs (not for --help)
+def cli_names():  # noqa: ANN201 - neuralslicer.run.preflight.Names, imported when a command runs (not for --help)
     """How the preflight's messages name the settings on the command line: by their flags."""
-    from neuralslicer.preflight import Names
+    from neuralslicer.run.preflight import Names
 
     return Names(out="--out", store="--store", units="--units", layer_height="--layer-height", machine="--machine",
                  force="--force", config="--config")

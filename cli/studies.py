@@ -25,7 +25,7 @@ def check_model(model: Path, args: argparse.Namespace, config: Any, out_dir: Pat
     """The slice command's checks before any work (outputs, store, scale, layer count, machine, FEA) for one model."""
     from neuralslicer.model.solid import implicit_solid
     from neuralslicer.model.spec import load_model
-    from neuralslicer.preflight import preflight
+    from neuralslicer.run.preflight import preflight
 
     spec = load_model(model, args.up, getattr(args, "units", None))
     solid = implicit_solid(spec)
@@ -159,7 +159,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     exit 1 when they differ beyond the tolerances, 0 when not."""
     import json
 
-    from neuralslicer.compare import comparison_doc, compare_entries, headline_figures, print_comparison, run_entries
+    from neuralslicer.run.compare import comparison_doc, compare_entries, headline_figures, print_comparison, run_entries
     from neuralslicer.fileio import to_json
 
     ignore = tuple(args.ignore or ())
@@ -176,7 +176,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 def add_compare_parser(sub: Any) -> None:
     """Options of `neuralslicer compare RUN_A RUN_B`."""
-    from neuralslicer.compare import DEFAULT_ATOL, DEFAULT_RTOL
+    from neuralslicer.run.compare import DEFAULT_ATOL, DEFAULT_RTOL
 
     p = sub.add_parser(
         "compare", help="differences in parameters and metrics of two output folders",

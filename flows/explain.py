@@ -16,7 +16,7 @@ from typing import Any
 
 from neuralslicer.errors import InputError
 from neuralslicer.flows.run_record import open_run_store, read_run_record
-from neuralslicer.provenance import flatten
+from neuralslicer.run.provenance import flatten
 from neuralslicer.storage import ArtifactStore
 
 #: parameter differences listed per step before "and N more"

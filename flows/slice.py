@@ -1,5 +1,5 @@
 """The slicing flow: model -> surface -> samples -> cage -> [fea -> stress_samples] -> field -> layers -> toolpaths -> motion
--> program -> export, every step a cached task (the chain is `neuralslicer.pipeline.run_chain`)."""
+-> program -> export, every step a cached task (the chain is `neuralslicer.run.pipeline.run_chain`)."""
 from __future__ import annotations
 
 import time
@@ -13,10 +13,10 @@ from prefect.states import State
 from neuralslicer.config import SliceConfig
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.output import print_hits
-from neuralslicer.pipeline import run_chain
-from neuralslicer.provenance import add_to_metrics, provenance
-from neuralslicer.report_embed import embed_figures
-from neuralslicer.step_table import step
+from neuralslicer.run.pipeline import run_chain
+from neuralslicer.run.provenance import add_to_metrics, provenance
+from neuralslicer.run.report_embed import embed_figures
+from neuralslicer.run.step_table import step
 from neuralslicer.flows.settings import artifact_key
 from neuralslicer.storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
 from neuralslicer.tasks.codec import StoredMotion, store_user_field

@@ -18,7 +18,7 @@ from neuralslicer.flows.branch import Branch, load_branch_spec, make_user_field,
 from neuralslicer.flows.study_report import write_study_outputs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
-from neuralslicer.preflight import check_slice
+from neuralslicer.run.preflight import check_slice
 from neuralslicer.storage import ArtifactStore, default_store
 
 INIT_KINDS = ("height", "heat", "user")

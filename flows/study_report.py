@@ -14,8 +14,8 @@ import trimesh  # noqa: E402
 from neuralslicer.flows.branch import Branch  # noqa: E402
 from neuralslicer.flows.settings import artifact_key  # noqa: E402
 from neuralslicer.metrics import field_agreement  # noqa: E402
-from neuralslicer.report import plot_learning_curves  # noqa: E402
-from neuralslicer.run_metrics import RunMetrics  # noqa: E402
+from neuralslicer.run.report import plot_learning_curves  # noqa: E402
+from neuralslicer.run.run_metrics import RunMetrics  # noqa: E402
 from neuralslicer.storage import ArtifactRef, ArtifactStore, atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
 from neuralslicer.tasks.codec import read_cage, read_field  # noqa: E402
 

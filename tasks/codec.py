@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from neuralslicer.cage import Cage
-from neuralslicer.field_step import FieldRecord, history_of
+from neuralslicer.run.field_step import FieldRecord, history_of
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Model, Solid
 from neuralslicer.motion.collision import CollisionMap, part_collisions
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
-from neuralslicer.pipeline import RoundPrint, TriedPrint
+from neuralslicer.run.pipeline import RoundPrint, TriedPrint
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
@@ -29,7 +29,7 @@ if TYPE_CHECKING:  # the output contract (and the report's plotting libraries) o
     import trimesh
 
     from neuralslicer.fea.solver import FEAResult, PrintedFEA
-    from neuralslicer.outputs import RunResults, StrengthRound
+    from neuralslicer.run.outputs import RunResults, StrengthRound
 
 
 def read(ref: ArtifactRef, names: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -242,7 +242,7 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
              sr_rounds: list[RoundPrint[ArtifactRef]] | None = None,
              toolpaths: ArtifactRef | None = None, program_ref: ArtifactRef | None = None) -> RunResults:
     """Every step's result of one slice, as the output contract needs them."""
-    from neuralslicer.outputs import Attempt, RunResults
+    from neuralslicer.run.outputs import Attempt, RunResults
 
     refs = {"model": model, "surface": surface, "samples": samples, "cage": cage, "field": field, "layers": layers,
             "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress_samples, "verify": verify}
@@ -271,7 +271,7 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
 
 def read_strength_round(label: str, motion: ArtifactRef, printed: ArtifactRef) -> StrengthRound:
     """One strength round: its print's collisions, the FEA of that print (strain figures) and how tau_max turned."""
-    from neuralslicer.outputs import TURN_ARRAYS, StrengthRound
+    from neuralslicer.run.outputs import TURN_ARRAYS, StrengthRound
 
     arrays, attrs = read(printed, [f"turn/{k}" for k in TURN_ARRAYS])
     return StrengthRound(label, int(attrs_of(motion)["metrics"].get("n_collisions", 0)), attrs,

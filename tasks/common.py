@@ -15,7 +15,7 @@ from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed, State
 
 from neuralslicer.allocator import release_freed_memory
-from neuralslicer.provenance import package_versions
+from neuralslicer.run.provenance import package_versions
 from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore, canonical, digest
 from neuralslicer.tasks.progress import run_logger, say
 

@@ -5,12 +5,12 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.fileio import write_text_atomic
-from neuralslicer.pipeline import RoundPrint, TriedPrint
+from neuralslicer.run.pipeline import RoundPrint, TriedPrint
 from neuralslicer.storage import ArtifactRef
 from neuralslicer.tasks.codec import read_run
 from neuralslicer.tasks.common import pipeline_task
 from neuralslicer.tasks.isolate import large_print
-from neuralslicer.step_table import STRESS_SAMPLES_KEY
+from neuralslicer.run.step_table import STRESS_SAMPLES_KEY
 
 STAMP = ".neuralslicer-export"
 
@@ -31,7 +31,7 @@ def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, 
                 toolpaths: ArtifactRef | None = None, program: ArtifactRef | None = None) -> tuple[dict, dict]:
     """Write model.ply, layers/, field.vtu, samples_B.ply, the print (``motion``: the motion step's output; the
     G-code of ``program``), metrics.json, report.md and figures to out_dir."""
-    from neuralslicer.outputs import write_outputs   # the report's plotting libraries: only when exporting
+    from neuralslicer.run.outputs import write_outputs   # the report's plotting libraries: only when exporting
 
     run = read_run(model, surface, samples, cage, field, layers, motion, stress_samples, verify, attempts or [], sr_rounds or [],
                    toolpaths, program)

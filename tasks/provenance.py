@@ -5,7 +5,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralslicer.fileio import write_json_atomic
-from neuralslicer.provenance import record_digest
+from neuralslicer.run.provenance import record_digest
 from neuralslicer.storage import ArtifactStore
 
 

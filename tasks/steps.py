@@ -1,4 +1,4 @@
-"""One Prefect task per step of the table (``neuralslicer/step_table.py``), made from its entry: each input read from
+"""One Prefect task per step of the table (``neuralslicer/run/step_table.py``), made from its entry: each input read from
 the store by the kind of its group (``tasks/codec.py: decode``), the step's core function called, its output written
 as the group the task is named after."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralslicer.step_table import STEPS, Record, Step, StepContext, Update
+from neuralslicer.run.step_table import STEPS, Record, Step, StepContext, Update
 from neuralslicer.storage import ArrayStream, ArtifactRef, ArtifactStore
 from neuralslicer.storage.content_cache import ContentCache, cache_root
 from neuralslicer.tasks.checkpoints import StoreCheckpoints

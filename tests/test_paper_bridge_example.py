@@ -10,7 +10,7 @@ from neuralslicer.config import SliceConfig
 from neuralslicer.fea.grid import voxelize
 from neuralslicer.fea.solver import fixed_dofs, load_vector
 from neuralslicer.model import implicit_solid, load_spec
-from neuralslicer.preflight import check_fea_regions
+from neuralslicer.run.preflight import check_fea_regions
 
 FOLDER = Path(neuralslicer.__file__).parent / "examples" / "paper_bridge"
 

@@ -12,7 +12,7 @@ from neuralslicer.cli.main import main
 from conftest import fast_config
 from neuralslicer.config import SliceConfig
 from neuralslicer.model.spec import load_spec
-from neuralslicer.run_metrics import RunMetrics
+from neuralslicer.run.run_metrics import RunMetrics
 
 pytestmark = [pytest.mark.usefixtures("prefect_server"), pytest.mark.slow]   # end to end: not in `make test-fast`
 

@@ -15,7 +15,7 @@ from PIL import Image
 from conftest import fast_config
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
-from neuralslicer.report_embed import embed_figures
+from neuralslicer.run.report_embed import embed_figures
 
 
 def _spec(folder: Path, part: Path, up: str) -> Path:
@@ -29,7 +29,7 @@ def test_the_preflight_keeps_a_specs_own_up_axis_and_names_the_flows_parameters(
                                                                                 ) -> None:
     """check_slice (the command line's and the deployed flow's checks): a spec's up stays unless one is given; an
     error names the parameter (Names() by default), not a flag."""
-    from neuralslicer.preflight import check_slice
+    from neuralslicer.run.preflight import check_slice
 
     spec = _spec(tmp_path, small_part, "y")
     config = SliceConfig.model_validate(fast_config())

@@ -14,7 +14,7 @@ from neuralslicer.gcode.writers import MIN_MOVE_S
 from neuralslicer.motion import (PRINT, RETRACT, forward_kinematics, load_profile, plan_motion, plan_print,
                                  program_metrics)
 from neuralslicer.motion.planning import MachineProgram
-from neuralslicer.outputs import write_print_outputs
+from neuralslicer.run.outputs import write_print_outputs
 from neuralslicer.toolpath.generate import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, disc_layer, planar_stack
 from neuralslicer.toolpath.types import Toolpaths

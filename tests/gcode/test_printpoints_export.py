@@ -18,7 +18,7 @@ import pytest
 
 from neuralslicer.gcode import parse_gcode, printpoint_layers
 from neuralslicer.motion import PRINT, forward_kinematics, load_profile, plan_print
-from neuralslicer.outputs import write_print_outputs
+from neuralslicer.run.outputs import write_print_outputs
 from neuralslicer.toolpath.synthetic import cap_stack
 
 #: PrintPoint.to_data() of compas_slicer (src/compas_slicer/geometry/print_point.py)

@@ -120,7 +120,7 @@ def test_a_layer_thicker_than_the_nozzle_lays_is_refused(tmp_path, part, capsys)
 
 def test_02_mm_layers_pass_the_preflight_on_a_04_nozzle(tmp_path, part):
     from neuralslicer.cli.options import cli_names
-    from neuralslicer.preflight import check_slice
+    from neuralslicer.run.preflight import check_slice
 
     config = build_config(_options(machine="reprap_5axis", layer_height=0.2))
     spec = check_slice(part, tmp_path / "o", str(tmp_path / "store"), config, up="z", names=cli_names())

@@ -216,7 +216,7 @@ def test_the_slice_passes_a_three_axis_profiles_bound_to_the_optimisation(monkey
     vertical head; a five-axis profile leaves the configuration as it was."""
     import types
 
-    from neuralslicer import pipeline
+    from neuralslicer.run import pipeline
     from neuralslicer.config import SliceConfig
 
     class Steps:

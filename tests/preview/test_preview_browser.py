@@ -85,7 +85,7 @@ def test_the_controls_redraw_without_errors(browser, planar_run: Path) -> None:
 def test_preview_of_the_ring(browser, ring_path: Path, tmp_path: Path) -> None:
     """The Ring of the paper, sliced with curved layers and tilted tool axes: its preview.html draws."""
     from neuralslicer.config import SliceConfig
-    from neuralslicer.in_process import slice_model
+    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
 
     config = SliceConfig.model_validate(fast_config(

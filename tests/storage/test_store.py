@@ -81,7 +81,7 @@ def test_digest_uses_artifact_digests_and_model_fields():
 
 
 def test_a_record_of_artifacts_keys_as_the_tuple_of_its_fields():
-    from neuralslicer.pipeline import RoundPrint, TriedPrint
+    from neuralslicer.run.pipeline import RoundPrint, TriedPrint
 
     a, m, f = ArtifactRef("/s1", "m/f/1", "d1"), ArtifactRef("/s1", "m/m/1", "d2"), ArtifactRef("/s1", "m/p/1", "d3")
     # the export's key from before the records were typed: its caches stay valid

@@ -1,5 +1,5 @@
 """The slicing chain in this process, without Prefect or a store: what a notebook, a benchmark or a test runs
-(:func:`slice_model`); the Prefect flow runs the same chain (:func:`neuralslicer.pipeline.run_chain`) as tasks."""
+(:func:`slice_model`); the Prefect flow runs the same chain (:func:`neuralslicer.run.pipeline.run_chain`) as tasks."""
 from __future__ import annotations
 
 import logging
@@ -12,13 +12,13 @@ from typing import Any, TypeVar
 import numpy as np
 
 from neuralslicer.config import SliceConfig
-from neuralslicer.field_step import Progress, field_of, history_of
+from neuralslicer.run.field_step import Progress, field_of, history_of
 from neuralslicer.model.solid import Model
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.collision import CollisionMap
 from neuralslicer.motion.output import Motion, print_hits
-from neuralslicer.pipeline import Chain, run_chain
-from neuralslicer.step_table import StepContext, encode_cage, step
+from neuralslicer.run.pipeline import Chain, run_chain
+from neuralslicer.run.step_table import StepContext, encode_cage, step
 
 T = TypeVar("T")
 LOG = "neuralslicer"
@@ -59,7 +59,7 @@ class InProcessSteps:
 
 def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN201 - RunResults, imported late
     """The output contract's view of an in-process chain."""
-    from neuralslicer.outputs import Attempt, RunResults, StrengthRound
+    from neuralslicer.run.outputs import Attempt, RunResults, StrengthRound
 
     cage, motion = chain.cage, chain.printed.motion
     maps = {"printed": _collision_map(motion)}
@@ -94,7 +94,7 @@ def slice_model(spec: ModelSpec, config: SliceConfig, out_dir: str | Path | None
     chain = run_chain(steps, spec, config, user_field)
     if out_dir is None:
         return chain, None
-    from neuralslicer.outputs import write_outputs
+    from neuralslicer.run.outputs import write_outputs
 
     metrics = write_outputs(out_dir, run_results(chain, model_name(spec), steps.wall_s), config.alpha_deg,
                             config.neural.loss.beta_deg, config.robot)

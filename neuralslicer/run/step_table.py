@@ -2,7 +2,7 @@
 
 A :class:`Step` names the paper's step, the store group it writes (its name), its code version (what its cache key
 covers besides its parameters and inputs), its core call and how its output is stored. Both runners are made from this
-table: :class:`neuralslicer.in_process.InProcessSteps` calls ``compute`` on the outputs of earlier steps as they are in
+table: :class:`neuralslicer.run.in_process.InProcessSteps` calls ``compute`` on the outputs of earlier steps as they are in
 memory; the Prefect flow runs one task per step (``tasks/steps.py``), which reads each input from the store by the
 kind of its group (``tasks/codec.py: decode``), calls the same ``compute`` and writes ``encode`` of its output.
 
@@ -24,7 +24,7 @@ import numpy as np
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
-from neuralslicer.field_step import (FieldRecord, Record, blend_record, field_of, height_record, s3_oneshot_record,
+from neuralslicer.run.field_step import (FieldRecord, Record, blend_record, field_of, height_record, s3_oneshot_record,
                                      s3_record)
 from neuralslicer.layers import LayerConfig, Layers, slice_layers
 from neuralslicer.model.solid import Model, implicit_solid

@@ -1,4 +1,4 @@
-"""The table of steps (neuralslicer/step_table.py): both runners made from it, the cache keys of the hand-written tasks
+"""The table of steps (neuralslicer/run/step_table.py): both runners made from it, the cache keys of the hand-written tasks
 it replaced kept, and a step added to it running both ways."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from neuralslicer.config import SliceConfig
 from neuralslicer.motion.profile import load_profile
-from neuralslicer.step_table import BY_NAME, STEPS, Step, StepContext
+from neuralslicer.run.step_table import BY_NAME, STEPS, Step, StepContext
 from neuralslicer.storage import ArtifactRef, ArtifactStore
 from neuralslicer.storage.layout import DIMENSIONS
 from neuralslicer.tasks.codec import DECODERS
@@ -98,7 +98,7 @@ def test_a_task_has_its_core_functions_parameters_and_every_stored_kind_a_reader
     read = {s.name for s in STEPS} - {"program"}     # the G-code is read by the export only, a chunk at a time
     assert read <= set(DECODERS), read - set(DECODERS)
     with pytest.raises(KeyError, match="no step 'layer'; the steps: model, surface"):
-        from neuralslicer.step_table import step
+        from neuralslicer.run.step_table import step
 
         step("layer")
 
@@ -115,7 +115,7 @@ def test_a_step_added_to_the_table_runs_both_ways(prefect_server: None, small_pa
     from prefect import flow
 
     from neuralslicer.flows.slice import RunLog, TaskSteps
-    from neuralslicer.in_process import InProcessSteps
+    from neuralslicer.run.in_process import InProcessSteps
     from neuralslicer.model.spec import spec_for_file
 
     new = Step("centre", "the centre of B (a test)", "1", centre_step,

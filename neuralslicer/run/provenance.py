@@ -67,7 +67,7 @@ def device_info(device: str = "auto", used: dict[str, Any] | None = None) -> dic
 
 def git_commit(path: Path | None = None) -> str | None:
     """The git commit (with '+dirty' for local changes) of the source tree this package runs from."""
-    root = path or Path(__file__).resolve().parents[1]
+    root = path or Path(__file__).resolve().parents[2]
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
         if head.returncode != 0:

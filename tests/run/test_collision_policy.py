@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 import pytest
 
-from neuralslicer.collision_policy import (CollisionPolicy, FieldRequest, PlanarBlend, PrintAttempt, Refine, Smoother,
+from neuralslicer.run.collision_policy import (CollisionPolicy, FieldRequest, PlanarBlend, PrintAttempt, Refine, Smoother,
                                            run_policy)
 from neuralslicer.config import SliceConfig
 from neuralslicer.neural.config import NeuralConfig

@@ -10,8 +10,8 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from neuralslicer.errors import InputError
-from neuralslicer.provenance import flatten
-from neuralslicer.run_metrics import KEYS, RunMetrics
+from neuralslicer.run.provenance import flatten
+from neuralslicer.run.run_metrics import KEYS, RunMetrics
 
 # entries that differ between any two runs and say nothing about the result
 VOLATILE = ("recorded_at", "command", "digest", "provenance.device.torch_threads")

@@ -114,7 +114,7 @@ def test_too_many_layers_need_force(tmp_path, capsys):
     from neuralslicer.errors import InputError
     from neuralslicer.model.solid import implicit_solid
     from neuralslicer.model.spec import spec_for_file
-    from neuralslicer.preflight import check_layer_count
+    from neuralslicer.run.preflight import check_layer_count
 
     solid = implicit_solid(spec_for_file(scaled(tmp_path, 100.0), "z"))   # 1.6 m tall: 2,000 layers of 0.8 mm
     config = SliceConfig()
@@ -273,7 +273,7 @@ def test_the_slice_help_names_the_preflights_layer_limit():
     """The --force help states the preflight's layer limit (written out: the command line does not import the
     preflight before it runs a slice)."""
     from neuralslicer.cli.main import make_parser
-    from neuralslicer.preflight import MAX_LAYERS
+    from neuralslicer.run.preflight import MAX_LAYERS
 
     slice_parser = next(a for a in make_parser()._subparsers._group_actions).choices["slice"]
     assert f"{MAX_LAYERS:,}" in slice_parser.format_help().replace("\n", " ")
@@ -286,7 +286,7 @@ def test_version_prints_the_version_pyproject_declares(capsys) -> None:
 
     from neuralslicer.cli.main import make_parser
 
-    declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
+    declared = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())["project"]["version"]
     with pytest.raises(SystemExit) as stop:
         make_parser().parse_args(["--version"])
     assert stop.value.code == 0 and capsys.readouterr().out.strip() == f"neuralslicer {declared}"

@@ -1,9 +1,9 @@
 """The slicing chain, written once (SPEC steps 1-12): model -> surface -> samples -> cage -> [FEA -> T] -> field ->
 layers -> toolpaths -> motion -> program, with the collision policy's attempts and the strength rounds.
 
-The chain runs on any :class:`Steps`: each call runs one step of the table (:mod:`neuralslicer.step_table`) by its
-name. :class:`neuralslicer.in_process.InProcessSteps` calls the step's core function in this process (a notebook, a
-benchmark, :func:`neuralslicer.in_process.slice_model`); the Prefect flow's steps run each as a task on a store and
+The chain runs on any :class:`Steps`: each call runs one step of the table (:mod:`neuralslicer.run.step_table`) by its
+name. :class:`neuralslicer.run.in_process.InProcessSteps` calls the step's core function in this process (a notebook, a
+benchmark, :func:`neuralslicer.run.in_process.slice_model`); the Prefect flow's steps run each as a task on a store and
 hand store references along. Handles (``H``) are whatever the steps pass between them.
 """
 from __future__ import annotations
@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar
 
-from neuralslicer.collision_policy import CollisionPolicy, FieldRequest, PrintAttempt, run_policy
+from neuralslicer.run.collision_policy import CollisionPolicy, FieldRequest, PrintAttempt, run_policy
 from neuralslicer.config import SliceConfig
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
@@ -95,7 +95,7 @@ def field_parameters(call: FieldCall[H]) -> tuple[str, dict[str, Any]]:
 
 
 class Steps(Protocol[H]):
-    """Runs the steps of the table (:data:`neuralslicer.step_table.STEPS`); the chain decides the order and what to do
+    """Runs the steps of the table (:data:`neuralslicer.run.step_table.STEPS`); the chain decides the order and what to do
     after a colliding print."""
 
     def run(self, step: str, **parameters: Any) -> H:

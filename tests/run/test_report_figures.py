@@ -8,11 +8,11 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from neuralslicer import report
+from neuralslicer.run import report
 from neuralslicer.metrics import overhang_area_fraction
 from neuralslicer.motion.collision import CollisionMap
-from neuralslicer.outputs import draw_figures
-from neuralslicer.report import (_layer_frame, offscreen_rendering_available, plot_layer_toolpaths, plot_layers_3d,
+from neuralslicer.run.outputs import draw_figures
+from neuralslicer.run.report import (_layer_frame, offscreen_rendering_available, plot_layer_toolpaths, plot_layers_3d,
                                  plot_overhang_map, plot_thickness_map, representative_layers)
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.toolpath.beads import bead_summary
@@ -199,7 +199,7 @@ def test_export_jobs_give_every_result_in_order_with_or_without_a_helper(tmp_pat
     """The export's independent jobs (figures, the toolpaths' files) shared with a forked helper process: every job
     runs once, its files are written, and the figures come back in the jobs' order whoever did them."""
     from neuralslicer.forked import FORK_ENV
-    from neuralslicer.outputs import ExportJobs
+    from neuralslicer.run.outputs import ExportJobs
 
     monkeypatch.setenv(FORK_ENV, helper)
     jobs = [(float(i % 3), (lambda i=i: _write(tmp_path / f"f{i}.txt", f"job {i}"))) for i in range(7)]
@@ -210,7 +210,7 @@ def test_export_jobs_give_every_result_in_order_with_or_without_a_helper(tmp_pat
 
 def test_a_job_that_fails_in_the_helper_fails_the_export_with_its_error(tmp_path: Path) -> None:
     """A job the helper process could not do is done again by the exporting process, which raises its error."""
-    from neuralslicer.outputs import ExportJobs
+    from neuralslicer.run.outputs import ExportJobs
 
     def broken() -> dict[str, str]:
         raise ValueError("no such layer")

@@ -8,16 +8,16 @@ from pathlib import Path
 
 import pytest
 
-from neuralslicer.compare import compare_runs
+from neuralslicer.run.compare import compare_runs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
 from neuralslicer.model.spec import spec_for_file
-from neuralslicer.provenance import metrics_entries, provenance
+from neuralslicer.run.provenance import metrics_entries, provenance
 from neuralslicer.tasks.provenance import record_provenance
 from neuralslicer.storage import ArtifactStore
 from studies_common import torus_file
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _run_folder(path: Path, metrics: dict, prov: dict | None = None) -> Path:
@@ -166,7 +166,7 @@ def test_compare_exits_0_within_the_tolerances(tmp_path: Path, capsys) -> None:
 
 def test_values_equal_tolerances() -> None:
     """|a - b| <= max(rtol * max(|a|, |b|), atol); NaN equals NaN; lists element-wise; bools and strings exactly."""
-    from neuralslicer.compare import values_equal
+    from neuralslicer.run.compare import values_equal
 
     assert values_equal(1.0, 1.0 + 1e-7, rtol=1e-6) and not values_equal(1.0, 1.0 + 1e-5, rtol=1e-6)
     assert values_equal(0.0, 1e-10, atol=1e-9) and not values_equal(0.0, 1e-10, rtol=0.5)
@@ -177,7 +177,7 @@ def test_values_equal_tolerances() -> None:
 
 def test_tables_written_to_a_file_or_log_are_not_cut(monkeypatch, capsys) -> None:
     """Redirected output (no terminal, no COLUMNS) keeps every cell whole: a scheduler's log stays readable."""
-    from neuralslicer.compare import Difference, print_comparison
+    from neuralslicer.run.compare import Difference, print_comparison
 
     monkeypatch.delenv("COLUMNS", raising=False)
     key = "sf.heldout.overhang_area_fraction_layers." + "x" * 80

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neuralslicer.run_metrics import KEYS, RunMetrics
+from neuralslicer.run.run_metrics import KEYS, RunMetrics
 
 
 def test_figures_are_read_by_their_metrics_keys_and_missing_ones_are_none() -> None:
@@ -32,7 +32,7 @@ def test_a_figure_of_the_wrong_type_is_refused_by_name() -> None:
 def test_the_docs_list_every_figure_with_its_key_and_meaning() -> None:
     from pathlib import Path
 
-    docs = (Path(__file__).resolve().parents[1] / "docs" / "outputs.md").read_text()
+    docs = (Path(__file__).resolve().parents[2] / "docs" / "outputs.md").read_text()
     for name, key in KEYS.items():
         row = f"| `{name}` | `{key}` | {RunMetrics.label(name)} | {RunMetrics.model_fields[name].description} |"
         assert row in docs, row

@@ -1,5 +1,5 @@
 """The two runners of the slicing chain agree: the Prefect flow (the command) and the in-process one
-(``neuralslicer.in_process.slice_model``, what a notebook or a benchmark runs) on the Ring with defaults."""
+(``neuralslicer.run.in_process.slice_model``, what a notebook or a benchmark runs) on the Ring with defaults."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from neuralslicer.compare import values_equal
+from neuralslicer.run.compare import values_equal
 
 #: entries that differ between any two runs and say nothing about the result: wall times, and what only the command
 #: records (its provenance, its run's tasks)
@@ -25,7 +25,7 @@ def test_the_flow_and_the_in_process_chain_give_the_same_metrics_and_gcode(prefe
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     from neuralslicer.cli.main import main
     from neuralslicer.config import SliceConfig
-    from neuralslicer.in_process import slice_model
+    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
 
     flow_out, core_out = tmp_path / "flow", tmp_path / "core"

@@ -23,7 +23,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from neuralslicer.fileio import atomic_path  # noqa: E402
 from neuralslicer.metrics import overhang_area_fraction, support_angles  # noqa: E402
-from neuralslicer.run_metrics import RunMetrics  # noqa: E402
+from neuralslicer.run.run_metrics import RunMetrics  # noqa: E402
 from neuralslicer.toolpath.types import Toolpaths  # noqa: E402
 
 if TYPE_CHECKING:

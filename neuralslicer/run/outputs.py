@@ -36,7 +36,7 @@ from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.preview import PREVIEW_FILE
 from neuralslicer.preview.data import PreviewData
 from neuralslicer.preview.page import write_preview
-from neuralslicer.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
+from neuralslicer.run.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
                                  plot_filament_angles, plot_layers_3d, plot_learning_curves, plot_overhang_map,
                                  plot_strain_histogram, plot_strain_maps, plot_stress_turn, plot_thickness_map)
 from neuralslicer.samples import SurfaceSamples, write_samples_ply

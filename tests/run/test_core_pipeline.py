@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 
 from neuralslicer.config import SliceConfig
-from neuralslicer.in_process import slice_model
+from neuralslicer.run.in_process import slice_model
 from neuralslicer.model.spec import spec_for_file
 
 model, out = Path(sys.argv[1]), Path(sys.argv[2])
