@@ -16,7 +16,8 @@ from neuralslicer.preview.page import write_preview
 from neuralslicer.toolpath.synthetic import cap_stack
 
 MISSING = browser_missing()
-pytestmark = pytest.mark.skipif(MISSING is not None, reason=f"no headless browser: {MISSING}")
+# a real Chromium (about 15 s for the module): end-to-end, so `make test` runs it and `make test-fast` leaves it out
+pytestmark = [pytest.mark.skipif(MISSING is not None, reason=f"no headless browser: {MISSING}"), pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
