@@ -49,8 +49,8 @@ KEPT = ("field.steps", "field.stop", "n_layers", "n_waypoints", "n_collisions", 
 def one(network: str, max_steps: int, out: Path) -> dict:
     """Slice the Ring with one network in this process: its metrics, learning curve and peak RSS."""
     from neuralslicer.config import SliceConfig
-    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.run.in_process import slice_model
 
     config = SliceConfig.model_validate({"neural": {"network": network, "optim": {"max_steps": max_steps}}})
     curve: list[tuple[int, float, float]] = []

@@ -7,16 +7,15 @@ change) on the same machine, alternating, and its metrics.json compared key by k
 
 The command is ``neuralslicer slice neuralslicer/data/ring.tet --up y --out DIR`` (issue 30's targets: under 60 s
 fresh, under 5 s cached, on a quiet machine). Each side runs in its own checkout (``cwd``, and
-``benchmarks/checkout_env.py``'s environment: that checkout's ``neuralslicer`` and outer layers alone) with this interpreter, the user's Prefect
-home and the cage cache in ~/.cache/neuralslicer (the run is deterministic given it). ``--cold-server``: the local
-Prefect API server left up by an earlier command is stopped before each fresh run, so that the fresh run boots its
-own (what a first command after the idle time does); without it a fresh run uses the server the last command left
-up. CPU time is the command's own process and the processes it waited for (user + system, ``RUSAGE_CHILDREN``), not
-the server's. The 1-minute load average is recorded before and after every run: figures taken beside other jobs
-say so. metrics.json of the runs are compared without their wall-time keys (``wall_s.*``, ``timings_s``) and the
-git commit: the runs must agree on everything else.
-"""
-from __future__ import annotations
+``benchmarks/checkout_env.py``'s environment: that checkout's ``neuralslicer`` and outer layers alone) with this
+interpreter, the user's Prefect home and the cage cache in ~/.cache/neuralslicer (the run is deterministic given
+it). ``--cold-server``: the local Prefect API server left up by an earlier command is stopped before each fresh run,
+so that the fresh run boots its own (what a first command after the idle time does); without it a fresh run uses the
+server the last command left up. CPU time is the command's own process and the processes it waited for (user +
+system, ``RUSAGE_CHILDREN``), not the server's. The 1-minute load average is recorded before and after every run:
+figures taken beside other jobs say so. metrics.json of the runs are compared without their wall-time keys
+(``wall_s.*``, ``timings_s``) and the git commit: the runs must agree on everything else. """ from __future__ import
+annotations
 
 import argparse
 import json

@@ -98,8 +98,8 @@ def core_stages(name: str, tmp: Path) -> tuple[list[dict], dict]:
     from scipy.spatial import cKDTree
 
     from neuralslicer.config import SliceConfig
-    from neuralslicer.run.in_process import InProcessSteps
     from neuralslicer.model.spec import load_spec, spec_for_file
+    from neuralslicer.run.in_process import InProcessSteps
     from neuralslicer.run.pipeline import run_chain
     from neuralslicer.run.report import plot_layers_3d, plot_thickness_map
 

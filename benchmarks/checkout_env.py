@@ -20,7 +20,8 @@ import tempfile
 import tomllib
 from pathlib import Path
 
-SITECUSTOMIZE = '''"""Written by benchmarks/checkout_env.py: import the checkout at {root!r}, not the installed project."""
+SITECUSTOMIZE = '''"""Written by benchmarks/checkout_env.py: import the checkout at {root!r}, not the installed
+project."""
 import importlib.util
 import os
 import sys
@@ -52,7 +53,8 @@ def outer_layers(checkout: Path) -> dict[str, str]:
     """``neuralslicer.<layer>`` -> its folder in the checkout, from the checkout's pyproject.toml package-dir."""
     project = tomllib.loads((checkout / "pyproject.toml").read_text())
     dirs = project.get("tool", {}).get("setuptools", {}).get("package-dir", {})
-    return {name: str((checkout / folder).resolve()) for name, folder in dirs.items() if name.startswith("neuralslicer.")}
+    return {name: str((checkout / folder).resolve()) for name, folder in dirs.items()
+            if name.startswith("neuralslicer.")}
 
 
 def checkout_environ(checkout: Path, env: dict[str, str] | None = None) -> dict[str, str]:

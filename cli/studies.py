@@ -159,8 +159,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     exit 1 when they differ beyond the tolerances, 0 when not."""
     import json
 
-    from neuralslicer.run.compare import comparison_doc, compare_entries, headline_figures, print_comparison, run_entries
     from neuralslicer.fileio import to_json
+    from neuralslicer.run.compare import comparison_doc, compare_entries, headline_figures, print_comparison, run_entries
 
     ignore = tuple(args.ignore or ())
     a, b = run_entries(args.run_a), run_entries(args.run_b)     # each folder's files read once

@@ -11,13 +11,13 @@ from prefect import flow, get_run_logger, tags
 from prefect.states import State
 
 from neuralslicer.config import SliceConfig
+from neuralslicer.flows.settings import artifact_key
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.output import print_hits
 from neuralslicer.run.pipeline import run_chain
 from neuralslicer.run.provenance import add_to_metrics, provenance
 from neuralslicer.run.report_embed import embed_figures
 from neuralslicer.run.step_table import step
-from neuralslicer.flows.settings import artifact_key
 from neuralslicer.storage import ArtifactRef, ArtifactStore, groups_used, write_json_atomic
 from neuralslicer.tasks.codec import StoredMotion, store_user_field
 from neuralslicer.tasks.common import run_step

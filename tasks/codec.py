@@ -10,12 +10,12 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from neuralslicer.cage import Cage
-from neuralslicer.run.field_step import FieldRecord, history_of
 from neuralslicer.fea.samples import StressSamples
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Model, Solid
 from neuralslicer.motion.collision import CollisionMap, part_collisions
 from neuralslicer.motion.planning import MachineProgram, ProgramMoves
+from neuralslicer.run.field_step import FieldRecord, history_of
 from neuralslicer.run.pipeline import RoundPrint, TriedPrint
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.scalar_field import ScalarField
@@ -245,7 +245,8 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
     from neuralslicer.run.outputs import Attempt, RunResults
 
     refs = {"model": model, "surface": surface, "samples": samples, "cage": cage, "field": field, "layers": layers,
-            "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress_samples, "verify": verify}
+            "toolpaths": toolpaths, "motion": motion, "program": program_ref, "stress_samples": stress_samples,
+            "verify": verify}
     c = read_cage(cage)
     surface_mesh, surface_attrs = read_surface(surface)
     # the G-code comes from the store: of the program, the export reads what it draws

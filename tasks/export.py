@@ -6,11 +6,11 @@ from typing import Any
 
 from neuralslicer.fileio import write_text_atomic
 from neuralslicer.run.pipeline import RoundPrint, TriedPrint
+from neuralslicer.run.step_table import STRESS_SAMPLES_KEY
 from neuralslicer.storage import ArtifactRef
 from neuralslicer.tasks.codec import read_run
 from neuralslicer.tasks.common import pipeline_task
 from neuralslicer.tasks.isolate import large_print
-from neuralslicer.run.step_table import STRESS_SAMPLES_KEY
 
 STAMP = ".neuralslicer-export"
 
@@ -33,8 +33,8 @@ def export_task(out: ArtifactRef, store: str, out_dir: str, model: ArtifactRef, 
     G-code of ``program``), metrics.json, report.md and figures to out_dir."""
     from neuralslicer.run.outputs import write_outputs   # the report's plotting libraries: only when exporting
 
-    run = read_run(model, surface, samples, cage, field, layers, motion, stress_samples, verify, attempts or [], sr_rounds or [],
-                   toolpaths, program)
+    run = read_run(model, surface, samples, cage, field, layers, motion, stress_samples, verify, attempts or [],
+                   sr_rounds or [], toolpaths, program)
     metrics = write_outputs(out_dir, run, alpha_deg, beta_deg, robot)
     write_text_atomic(Path(out_dir) / STAMP, out.digest)
     return {}, {"out_dir": str(out_dir), "metrics": metrics}

@@ -12,11 +12,11 @@ from typing import Any, TypeVar
 import numpy as np
 
 from neuralslicer.config import SliceConfig
-from neuralslicer.run.field_step import Progress, field_of, history_of
 from neuralslicer.model.solid import Model
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.collision import CollisionMap
 from neuralslicer.motion.output import Motion, print_hits
+from neuralslicer.run.field_step import Progress, field_of, history_of
 from neuralslicer.run.pipeline import Chain, run_chain
 from neuralslicer.run.step_table import StepContext, encode_cage, step
 

@@ -22,7 +22,6 @@ import trimesh
 from neuralslicer.allocator import release_freed_memory
 from neuralslicer.cage import Cage
 from neuralslicer.fea.samples import StressSamples
-from neuralslicer.verify import PART_FIGURES, strain_gains
 from neuralslicer.fileio import atomic_path, save_vtk_xml, write_json_atomic, write_text_atomic
 from neuralslicer.forked import SharedJobs
 from neuralslicer.gcode.printpoints import write_printpoints_json
@@ -36,14 +35,15 @@ from neuralslicer.motion.planning import MachineProgram, ProgramMoves
 from neuralslicer.preview import PREVIEW_FILE
 from neuralslicer.preview.data import PreviewData
 from neuralslicer.preview.page import write_preview
-from neuralslicer.run.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_layer_toolpaths,
-                                 plot_filament_angles, plot_layers_3d, plot_learning_curves, plot_overhang_map,
-                                 plot_strain_histogram, plot_strain_maps, plot_stress_turn, plot_thickness_map)
+from neuralslicer.run.report import (markdown_report, plot_angle_histogram, plot_collision_map, plot_filament_angles,
+                                     plot_layer_toolpaths, plot_layers_3d, plot_learning_curves, plot_overhang_map,
+                                     plot_strain_histogram, plot_strain_maps, plot_stress_turn, plot_thickness_map)
 from neuralslicer.samples import SurfaceSamples, write_samples_ply
 from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.io import plot_toolpaths_png, write_toolpaths_vtp, write_waypoints_csv
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.types import IndexArray
+from neuralslicer.verify import PART_FIGURES, strain_gains
 
 #: print metrics copied into metrics.json
 PRINT_METRICS = (

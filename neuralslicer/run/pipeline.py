@@ -12,11 +12,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar
 
-from neuralslicer.run.collision_policy import CollisionPolicy, FieldRequest, PrintAttempt, run_policy
 from neuralslicer.config import SliceConfig
 from neuralslicer.layers import LayerConfig
 from neuralslicer.model.spec import ModelSpec
 from neuralslicer.motion.profile import MachineProfile, load_profile
+from neuralslicer.run.collision_policy import CollisionPolicy, FieldRequest, PrintAttempt, run_policy
 from neuralslicer.toolpath.config import ToolpathConfig
 
 H = TypeVar("H")

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from types import MappingProxyType
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ContextManager, Protocol
 
 import numpy as np
@@ -24,14 +24,14 @@ import numpy as np
 from neuralslicer.baselines.s3_config import S3Config, S3DeformConfig
 from neuralslicer.cage import Cage, CageConfig, make_cage
 from neuralslicer.config import SampleConfig
-from neuralslicer.run.field_step import (FieldRecord, Record, blend_record, field_of, height_record, s3_oneshot_record,
-                                     s3_record)
 from neuralslicer.layers import LayerConfig, Layers, slice_layers
 from neuralslicer.model.solid import Model, implicit_solid
 from neuralslicer.model.spec import ModelSpec, model_name, spec_digest
 from neuralslicer.motion.output import Motion
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.run.field_step import (FieldRecord, Record, blend_record, field_of, height_record,
+                                         s3_oneshot_record, s3_record)
 from neuralslicer.samples import SurfaceSamples, surface_samples
 from neuralslicer.toolpath.config import ToolpathConfig
 from neuralslicer.toolpath.types import Toolpaths

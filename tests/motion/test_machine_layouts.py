@@ -352,8 +352,8 @@ def test_the_ring_prints_on_every_shipped_profile(ring_path, tmp_path):
     from conftest import fast_config
 
     from neuralslicer.config import SliceConfig
-    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.run.in_process import slice_model
 
     config = SliceConfig.model_validate(fast_config(
         samples={"n_samples": 4000}, cage={"n_elements": 3000}, neural={"optim": {"max_steps": 60}}))
@@ -388,8 +388,8 @@ def test_a_three_axis_slice_keeps_printing_directions_in_the_clearance_cone(smal
     from conftest import fast_config
 
     from neuralslicer.config import SliceConfig
-    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.run.in_process import slice_model
 
     config = SliceConfig.model_validate(fast_config(      # the profile's 0.4 mm nozzle: 0.3 mm layers, 0.8 mm lines
         neural={"optim": {"max_steps": 150}}, machine="three_axis_reprap",

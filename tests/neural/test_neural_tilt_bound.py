@@ -216,8 +216,8 @@ def test_the_slice_passes_a_three_axis_profiles_bound_to_the_optimisation(monkey
     vertical head; a five-axis profile leaves the configuration as it was."""
     import types
 
-    from neuralslicer.run import pipeline
     from neuralslicer.config import SliceConfig
+    from neuralslicer.run import pipeline
 
     class Steps:
         def run(self, step, **parameters):

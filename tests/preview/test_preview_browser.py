@@ -86,8 +86,8 @@ def test_the_controls_redraw_without_errors(browser, planar_run: Path) -> None:
 def test_preview_of_the_ring(browser, ring_path: Path, tmp_path: Path) -> None:
     """The Ring of the paper, sliced with curved layers and tilted tool axes: its preview.html draws."""
     from neuralslicer.config import SliceConfig
-    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.run.in_process import slice_model
 
     config = SliceConfig.model_validate(fast_config(
         samples={"n_samples": 4000}, cage={"n_elements": 3000}, neural={"optim": {"max_steps": 60}},

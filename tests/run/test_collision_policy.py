@@ -5,10 +5,10 @@ from collections.abc import Sequence
 
 import pytest
 
-from neuralslicer.run.collision_policy import (CollisionPolicy, FieldRequest, PlanarBlend, PrintAttempt, Refine, Smoother,
-                                           run_policy)
 from neuralslicer.config import SliceConfig
 from neuralslicer.neural.config import NeuralConfig
+from neuralslicer.run.collision_policy import (CollisionPolicy, FieldRequest, PlanarBlend, PrintAttempt, Refine,
+                                               Smoother, run_policy)
 
 OBJECTIVES = ["sf", "po", "gc", "ca"]
 

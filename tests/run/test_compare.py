@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from neuralslicer.run.compare import compare_runs
 from neuralslicer.config import SliceConfig
 from neuralslicer.errors import InputError
 from neuralslicer.model.spec import spec_for_file
+from neuralslicer.run.compare import compare_runs
 from neuralslicer.run.provenance import metrics_entries, provenance
 from neuralslicer.tasks.provenance import record_provenance
 from neuralslicer.storage import ArtifactStore

@@ -18,8 +18,8 @@ import json
 from pathlib import Path
 
 from neuralslicer.config import SliceConfig
-from neuralslicer.run.in_process import slice_model
 from neuralslicer.model.spec import spec_for_file
+from neuralslicer.run.in_process import slice_model
 
 model, out = Path(sys.argv[1]), Path(sys.argv[2])
 config = SliceConfig.model_validate(json.loads(sys.argv[3]))

@@ -25,8 +25,8 @@ def test_the_flow_and_the_in_process_chain_give_the_same_metrics_and_gcode(prefe
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     from neuralslicer.cli.main import main
     from neuralslicer.config import SliceConfig
-    from neuralslicer.run.in_process import slice_model
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.run.in_process import slice_model
 
     flow_out, core_out = tmp_path / "flow", tmp_path / "core"
     # the flow's motion, program and export steps in processes of their own, as a large print's are

@@ -8,12 +8,12 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from neuralslicer.run import report
 from neuralslicer.metrics import overhang_area_fraction
 from neuralslicer.motion.collision import CollisionMap
+from neuralslicer.run import report
 from neuralslicer.run.outputs import draw_figures
 from neuralslicer.run.report import (_layer_frame, offscreen_rendering_available, plot_layer_toolpaths, plot_layers_3d,
-                                 plot_overhang_map, plot_thickness_map, representative_layers)
+                                     plot_overhang_map, plot_thickness_map, representative_layers)
 from neuralslicer.samples import SurfaceSamples
 from neuralslicer.toolpath.beads import bead_summary
 from neuralslicer.toolpath.generate import toolpaths

@@ -30,11 +30,16 @@ KEYS_BEFORE = {
 }
 
 
+def _ref(kind: str) -> ArtifactRef:
+    """A made-up input of this kind (its digest named after it)."""
+    return ArtifactRef("/s", f"part/{kind}/d{kind}", f"d{kind}")
+
+
 def _parameters() -> dict[str, dict[str, Any]]:
     """Fixed parameters of every step (inputs as refs of made-up digests, the default settings)."""
     c = SliceConfig()
     machine = load_profile(c.machine)
-    r = lambda kind: ArtifactRef("/s", f"part/{kind}/d{kind}", f"d{kind}")  # noqa: E731
+    r = _ref
     fea_of = {"model": r("model"), "fea": r("fea"), "cage": r("cage"), "field": r("field")}
     field_in = {"model": r("model"), "cage": r("cage"), "samples": r("samples"), "stress_samples": None}
     return {
@@ -74,13 +79,13 @@ def test_a_renamed_parameter_keeps_its_key() -> None:
     from neuralslicer.tasks.export import export_task
 
     c = SliceConfig()
-    r = lambda kind: ArtifactRef("/s", f"part/{kind}/d{kind}", f"d{kind}")  # noqa: E731
-    base = {"store": "/s", "model": r("model"), "cage": r("cage"), "samples": r("samples"),
-            "stress_samples": r("stress_samples"), "objectives": ["sf", "sr"]}
+    base = {"store": "/s", **{k: _ref(k) for k in ("model", "cage", "samples", "stress_samples")},
+            "objectives": ["sf", "sr"]}
     made = {name: TASKS[name].pipeline.output({**base, "config": cfg}).path
             for name, cfg in (("field", c.neural), ("field_s3", c.s3), ("field_s3_oneshot", c.s3_oneshot))}
     export = {"store": "/s", "out_dir": "/o", "verify": None, "robot": False, "alpha_deg": 45.0, "beta_deg": 20.0,
-              **{k: r(k) for k in ("model", "surface", "samples", "cage", "field", "layers", "motion", "stress_samples")}}
+              **{k: _ref(k) for k in ("model", "surface", "samples", "cage", "field", "layers", "motion",
+                                      "stress_samples")}}
     made["export"] = export_task.pipeline.output(export).path
     assert made == KEYS_WITH_T
     key = TASKS["field"].pipeline.key_record({**base, "config": c.neural})
@@ -115,8 +120,8 @@ def test_a_step_added_to_the_table_runs_both_ways(prefect_server: None, small_pa
     from prefect import flow
 
     from neuralslicer.flows.slice import RunLog, TaskSteps
-    from neuralslicer.run.in_process import InProcessSteps
     from neuralslicer.model.spec import spec_for_file
+    from neuralslicer.run.in_process import InProcessSteps
 
     new = Step("centre", "the centre of B (a test)", "1", centre_step,
                lambda c: ({"centre": np.asarray(c)[None]}, {"units": "mm"}))
