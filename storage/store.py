@@ -98,6 +98,14 @@ class ArtifactStore:
             Path(self.root).mkdir(parents=True, exist_ok=True)
         self._ensure_group("")
 
+    def scratch(self) -> Path | None:
+        """A folder on the store's own disk for a step's temporary files (its staging folder), None for a remote store."""
+        if not self.is_local:
+            return None
+        folder = Path(self.root, STAGING)
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder
+
     def _ensure_group(self, path: str) -> None:
         """Create a group unless it exists, safe against another process creating it at the same moment
         (zarr's mode "a" checks, then creates: the loser of that race sees ContainsGroupError)."""

@@ -14,7 +14,7 @@ from neuralslicer.fea.samples import StressSamples
 from neuralslicer.layers import Layers
 from neuralslicer.model.solid import Model, Solid
 from neuralslicer.motion.collision import CollisionMap, part_collisions
-from neuralslicer.motion.planning import MachineProgram, ProgramMoves
+from neuralslicer.motion.planning import MachineProgram, ProgramMoves, program_header
 from neuralslicer.run.field_step import FieldRecord, history_of
 from neuralslicer.run.pipeline import RoundPrint, TriedPrint
 from neuralslicer.samples import SurfaceSamples
@@ -127,17 +127,78 @@ def read_program(ref: ArtifactRef) -> StoredBytes:
     return StoredBytes(ref, "gcode")
 
 
-def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram) -> tuple[Toolpaths, P, dict]:
+def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram, toolpaths: bool = True
+                ) -> tuple[Toolpaths | None, P, dict]:
     """Toolpaths, machine program and print metrics (the inverse of ``Motion.to_arrays``); ``program``: ProgramMoves to
-    read only the program's arrays that drawing it needs."""
-    names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS] + [f"program/{k}" for k in program.ARRAYS]
+    read only the program's arrays that drawing it needs; without ``toolpaths`` the toolpaths are not read (None)."""
+    names = ([f"toolpaths/{k}" for k in Toolpaths.ARRAYS] if toolpaths else []) + [f"program/{k}" for k in program.ARRAYS]
     arrays, attrs = ArtifactStore(ref.store, create=False).read(ref.path, names)
     part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
     return (
-        Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]),
+        Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]) if toolpaths else None,
         program.from_arrays(part["program"], attrs["program"]),
         attrs["metrics"],
     )
+
+
+class StoredToolpaths(Toolpaths):
+    """A stored print's toolpaths (the motion step's, as moved): their attrs read at once, their columns all read when
+    one is first used, in the process that uses it; ``column`` reads one alone and ``blocks`` a block of rows at a
+    time, without the others, until then. The export draws the preview and writes the CSV of a large print so."""
+
+    def __init__(self, ref: ArtifactRef) -> None:  # noqa: D107 - the dataclass's fields come from the store
+        self.ref = ref
+        self.attrs = Toolpaths.from_arrays({k: np.zeros(0) for k in Toolpaths.ARRAYS},
+                                           attrs_of(ref)["toolpaths"]).attrs
+
+    def __getattr__(self, name: str) -> Any:
+        """A column: every column read from the store on the first use of one."""
+        if name not in Toolpaths.ARRAYS:
+            raise AttributeError(name)
+        names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS]
+        arrays, _ = read(self.ref, names)
+        whole = Toolpaths.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()})
+        for k in Toolpaths.ARRAYS:
+            setattr(self, k, getattr(whole, k))
+        return getattr(self, name)
+
+    @property
+    def loaded(self) -> bool:
+        """Whether the columns have been read."""
+        return "xyz" in vars(self)
+
+    def column(self, name: str) -> np.ndarray:
+        """One column, read alone from the store unless all are in memory."""
+        if self.loaded:
+            return getattr(self, name)
+        column = Toolpaths.from_arrays({**{k: np.zeros(0) for k in Toolpaths.ARRAYS},
+                                        name: read(self.ref, [f"toolpaths/{name}"])[0][f"toolpaths/{name}"]})
+        return getattr(column, name)
+
+    def blocks(self, rows: int) -> Iterator[Toolpaths]:
+        """The waypoints ``rows`` at a time, read from the store a block at a time unless all are in memory."""
+        if self.loaded:
+            yield from super().blocks(rows)
+            return
+        store = ArtifactStore(self.ref.store, create=False)
+        columns = [store.read_slices(self.ref.path, f"toolpaths/{k}", rows) for k in Toolpaths.ARRAYS]
+        for parts in zip(*columns):
+            yield Toolpaths.from_arrays(dict(zip(Toolpaths.ARRAYS, parts)))
+
+
+class StoredProgram:
+    """A stored print's machine program as the export uses it: its profile, part offset and attributes read at once,
+    its moves (:class:`ProgramMoves`, some 80 bytes a waypoint) read from the store only by ``read()``: the preview,
+    the one job that draws them, holds them for its own time, not the whole export's."""
+
+    def __init__(self, ref: ArtifactRef) -> None:
+        """The program of the print stored as the group of ``ref``."""
+        self.ref = ref
+        self.profile, self.part_offset, self.attrs = program_header(attrs_of(ref)["program"])
+
+    def read(self) -> ProgramMoves:
+        """The program's moves, read from the store."""
+        return read_motion(self.ref, ProgramMoves, toolpaths=False)[1]
 
 
 def read_collision_map(ref: ArtifactRef) -> CollisionMap:
@@ -253,10 +314,13 @@ def read_run(model: ArtifactRef, surface: ArtifactRef, samples: ArtifactRef, cag
     # the first print's map first: its waypoints are read and dropped before the printed print's arrays come
     first = ({f"first print ({attempts[0].label})": read_collision_map(attempts[0].motion)}
              if attempts and attempts[0].motion != motion else {})
-    tp, program, print_metrics = read_motion(motion, ProgramMoves if program_ref is not None else MachineProgram)
+    if program_ref is not None:   # the G-code is the program step's: the moves and waypoints read where drawn
+        tp, program, print_metrics = StoredToolpaths(motion), StoredProgram(motion), attrs_of(motion)["metrics"]
+    else:
+        tp, program, print_metrics = read_motion(motion)
     gcode = read_program(program_ref) if program_ref is not None else None
     collided = read_collided(motion)
-    maps = {**first, "printed": CollisionMap.of_indices(tp.xyz, collided)}   # the waypoints read above
+    maps = {**first, "printed": read_collision_map(motion)}
     return RunResults(
         model=model.model, surface=surface_mesh, surface_attrs=surface_attrs, samples=read_samples(samples), cage=c,
         cage_attrs=attrs_of(cage), field=read_field(c, field), field_history=read_field_history(field),

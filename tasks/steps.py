@@ -29,10 +29,12 @@ def _bar(description: str, total: int) -> Iterator[Update]:
 
 def step_context(out: ArtifactRef, s: Step) -> StepContext:
     """What a step's core call gets in a task: the run's log, progress bars, and the checkpoints of a resumable step
-    beside its output (``<model>/checkpoints/<digest>``); its inputs are read for it alone."""
+    beside its output (``<model>/checkpoints/<digest>``); its inputs are read for it alone; its scratch folder is the
+    store's own (on the store's disk, not in a temporary folder that may be memory)."""
     checkpoints = (StoreCheckpoints(ArtifactStore(out.store), f"{out.model}/checkpoints/{out.digest}")
                    if s.resumable else None)
-    return StepContext(log=run_logger(), progress=_bar, say=say, checkpoints=checkpoints, owns_inputs=True)
+    return StepContext(log=run_logger(), progress=_bar, say=say, checkpoints=checkpoints, owns_inputs=True,
+                       scratch=ArtifactStore(out.store, create=False).scratch())
 
 
 def _read(value: Any) -> Any:

@@ -29,6 +29,13 @@ CELL_SIZE = 1.5
 MAX_CELLS = 24_000_000
 #: coarser levels above the finest
 N_LEVELS = 5
+#: points gathered at a time when a print's structure is built (bounds the gathers' temporaries)
+BUILD_ROWS = 1 << 22
+
+
+def rank_dtype(n_ranks: int) -> np.dtype:
+    """The dtype of printing ranks up to ``n_ranks``: int32 where they fit (half the bytes), int64 beyond."""
+    return np.dtype(np.int32 if n_ranks < np.iinfo(np.int32).max else np.int64)
 
 
 @dataclass
@@ -36,7 +43,7 @@ class PrintedMaterial:
     """Material points in (cube, time) order with their cubes' lists and the pyramid of first points.
 
     columns : (3, m) float64, the points' x, y, z, sorted by (finest cube, time) (``points`` is its (m, 3) view);
-    time : (m,) int64 printing rank that laid each;
+    time : (m,) printing rank that laid each (int32 below 2**31 ranks: 8 bytes a bead where int64 took 16);
     start : (n_cubes + 1,) int64 where each finest cube's points begin; first[level] : flat int64 array over that
     level's cubes of ``time * stride + index`` of the first point laid in the cube (``EMPTY`` if none);
     top : (n_ranks + 1,) highest z of the points laid before each rank (-inf before any).
@@ -72,7 +79,8 @@ class PrintedMaterial:
         columns = np.empty((3, len(points)))
         for d in range(3):
             np.take(points[:, d], order, out=columns[d])
-        return cls._indexed(columns, time[order], counts, origin, cell, dims0, top, n_ranks)
+        return cls._indexed(columns, time[order].astype(rank_dtype(n_ranks)), counts, origin, cell, dims0, top,
+                            n_ranks)
 
     @classmethod
     def of_toolpaths(cls, tp: Toolpaths, cell: float = CELL_SIZE) -> "PrintedMaterial":
@@ -103,15 +111,17 @@ class PrintedMaterial:
         order = np.argsort(flat, kind="stable")              # rank order (and top before bottom) kept within a cube
         counts = np.bincount(flat, minlength=int(np.prod(dims0)))
         del flat
-        time = order >> 1
-        waypoint = on[time]
-        bottom = np.flatnonzero(order & 1)
+        time = (order >> 1).astype(rank_dtype(len(on)))
+        bottom = (order & 1).astype(bool)
         del order
         columns = np.empty((3, m))
-        for d in range(3):
-            np.take(tp.xyz[:, d], waypoint, out=columns[d])
-            columns[d][bottom] -= tp.thickness[waypoint[bottom]] * tp.axis[waypoint[bottom], d]
-        del waypoint, bottom
+        for a in range(0, m, BUILD_ROWS):                    # in blocks: the gathers' temporaries are a block's
+            z = min(a + BUILD_ROWS, m)
+            waypoint, low = on[time[a:z]], np.flatnonzero(bottom[a:z])
+            for d in range(3):
+                np.take(tp.xyz[:, d], waypoint, out=columns[d, a:z])
+                columns[d, a + low] -= tp.thickness[waypoint[low]] * tp.axis[waypoint[low], d]
+        del bottom
         return cls._indexed(columns, time, counts, origin, cell, dims0, top, len(on))
 
     @classmethod
@@ -125,7 +135,7 @@ class PrintedMaterial:
         first0 = np.full(n_cells, EMPTY, np.int64)
         occupied = np.flatnonzero(counts)
         del counts
-        first0[occupied] = time[start[occupied]] * stride + start[occupied]
+        first0[occupied] = time[start[occupied]].astype(np.int64) * stride + start[occupied]
         dims, first = [dims0], [first0]
         for _ in range(N_LEVELS):
             d, f = _pooled(first[-1].reshape(dims[-1]))
@@ -146,9 +156,12 @@ class PrintedMaterial:
         return on
 
     def visible_at(self, tp: Toolpaths) -> IndexArray:
-        """Per waypoint of ``tp`` (n,), the ranks it sees: the printing waypoints before it (``time < visible``)."""
-        on = self.printing_of(tp).astype(np.int64)
-        return np.cumsum(on) - on
+        """Per waypoint of ``tp`` (n,), the ranks it sees: the printing waypoints before it (``time < visible``), in
+        the ranks' dtype."""
+        on = self.printing_of(tp)
+        visible = np.cumsum(on, dtype=rank_dtype(self.n_ranks))
+        visible -= on
+        return visible
 
     def cell_size(self, level: int) -> float:
         """Edge (mm) of a cube of ``level``."""

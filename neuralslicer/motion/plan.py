@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
@@ -13,6 +14,7 @@ from neuralslicer.errors import PlanError
 from neuralslicer.model.grid import values_above
 from neuralslicer.motion.collision import CollisionReport, check_collisions, default_min_height
 from neuralslicer.motion.material import PrintedMaterial
+from neuralslicer.motion.park import parked
 from neuralslicer.motion.planning import MachineProgram, feature_runs, plan_motion, program_metrics
 from neuralslicer.motion.profile import MachineProfile
 from neuralslicer.motion.reorient import clamp_to_platform, clamp_to_reach, tilt_away
@@ -55,11 +57,14 @@ def plan_print(layers: Sequence[trimesh.Trimesh], *, platform_z: float,
 
 def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.ndarray], np.ndarray] | None = None,
                    toolpath_cfg: ToolpathConfig | None = None, profile: MachineProfile | str | None = None,
-                   consume: bool = False) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
+                   consume: bool = False, scratch: str | Path | None = None
+                   ) -> tuple[Toolpaths, MachineProgram, dict, CollisionReport]:
     """The motion step: the head clear of the platform, the exact collision check, travels lifted, axes tilted and
     turned into reach, then the machine program (IK, extrusion) and the print's metrics (:func:`plan_print`).
     With ``consume`` the arrays of ``tp`` are taken over (``tp`` is left empty), so that the toolpaths as they came
-    are freed once the lifts have copied them, not held by the caller beside the program."""
+    are freed once the lifts have copied them, not held by the caller beside the program. A large print's toolpaths
+    are parked in a temporary folder inside ``scratch`` (None: the system's temporary folder) while the program is
+    planned (``motion/park.py``)."""
     profile, cfg = machine_profile(profile), toolpath_cfg or ToolpathConfig()
     tp = _taken(tp) if consume else dataclasses.replace(tp, attrs=dict(tp.attrs))   # attrs: the caller's unchanged
     held, n_merged = tp.attrs.pop("held_beads", None), tp.attrs.pop("n_merged_short_moves", 0)
@@ -73,11 +78,13 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     report = check_collisions(tp, profile.nozzle, platform_z, material=material)
     t2 = time.perf_counter()
     min_height = default_min_height(tp)
-    tp, report, lifted = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material)
+    tp, report, lifted = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material,
+                                       consume=True)
     tp, report, tilt = _tilt_clear(tp, report, profile, platform_z, cfg, material)
     tp, report, reach = _clamp_reach(tp, report, profile, platform_z, cfg, material)
     # a travel into a waypoint that collided itself shows only once the tilt has cleared that waypoint: lift it now
-    tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material)
+    tp, report, again = raise_travels(tp, report, profile.nozzle, platform_z, min_height, material=material,
+                                      consume=True)
     lifted = _merged_lifts(lifted, again)
     del material   # the beads' grid (~100 bytes a waypoint): the program and its timing need the room
     release_freed_memory()
@@ -87,13 +94,18 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     outside = None if solid_H is None else values_above(solid_H, tp.xyz[on & tp.extrude], OUTSIDE_TOL)
     release_freed_memory()
     t_plan = time.perf_counter()
-    program = plan_motion(tp, profile, platform_z=platform_z)
-    release_freed_memory()     # the planning's temporaries: the features' and the time estimate's arrays come next
-    program.attrs["isovalues"] = tp.attrs.get("isovalues", [])
-    program.attrs["features"] = feature_runs(program, tp.path, tp.attrs.get("path_kinds", ""))
-    release_freed_memory()
-    t4 = time.perf_counter()
-    metrics = program_metrics(program)
+    # a large print's toolpaths wait on disk while the program is planned and timed: the two are not held at once
+    with parked(tp, scratch) as waiting:
+        del tp
+        program = plan_motion(waiting, profile, platform_z=platform_z)
+        release_freed_memory()     # the planning's temporaries: the features' and the time estimate's arrays come next
+        program.attrs["isovalues"] = waiting.attrs.get("isovalues", [])
+        program.attrs["features"] = feature_runs(program, waiting.path, waiting.attrs.get("path_kinds", ""))
+        release_freed_memory()
+        t4 = time.perf_counter()
+        metrics = program_metrics(program)
+        release_freed_memory()
+        tp = waiting.load()
     if vertical is not None:
         metrics["three_axis"] = vertical
     metrics.update(travel_lift=lifted, axis_tilt=tilt, axis_reach=reach, axis_platform=platform,

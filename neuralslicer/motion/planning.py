@@ -21,6 +21,16 @@ PROGRAM_SCHEMA_VERSION = 2   # 2: no stored tool tips and axes (part_xyz, part_a
 TRAVEL, PRINT, RETRACT = 0, 1, 2
 
 
+def program_header(attrs: dict) -> tuple[MachineProfile, FloatArray, dict]:
+    """The profile, part offset and other attributes of a stored program's attributes (``MachineProgram.to_arrays``)."""
+    attrs = dict(attrs)
+    profile = MachineProfile.model_validate(attrs.pop("profile"))
+    offset = np.asarray(attrs.pop("part_offset"), np.float64)
+    for k in ("schema_version", "units", "axes"):
+        attrs.pop(k, None)
+    return profile, offset, attrs
+
+
 @dataclass
 class ProgramMoves:
     """The moves of a machine program as a preview draws them (in 65 of a :class:`MachineProgram`'s 73 bytes a
@@ -46,13 +56,13 @@ class ProgramMoves:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict) -> Self:
         """Inverse of ``MachineProgram.to_arrays`` (``arrays``: at least those of ``ARRAYS``)."""
-        attrs = dict(attrs)
-        profile = MachineProfile.model_validate(attrs.pop("profile"))
-        offset = np.asarray(attrs.pop("part_offset"), np.float64)
-        for k in ("schema_version", "units", "axes"):
-            attrs.pop(k, None)
+        profile, offset, attrs = program_header(attrs)
         kw = {k: np.asarray(arrays[k]) for k in cls.ARRAYS}
         return cls(**kw, part_offset=offset, profile=profile, attrs=attrs)
+
+    def read(self) -> Self:
+        """The moves: this program itself (a stored one, ``tasks/codec.py: StoredProgram``, reads them only here)."""
+        return self
 
     @property
     def axis_letters(self) -> tuple[str, ...]:

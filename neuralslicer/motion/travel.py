@@ -21,7 +21,7 @@ from neuralslicer.motion.head import platform_clearance
 from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath.types import Toolpaths
-from neuralslicer.types import FloatArray
+from neuralslicer.types import FloatArray, IndexArray
 
 
 def _poses(points: list[FloatArray], axes: list[FloatArray], spacing: float) -> tuple[FloatArray, FloatArray]:
@@ -88,12 +88,15 @@ def _clear_routes(material: PrintedMaterial, tp: Toolpaths, ends: IndexArray, vi
 
 def raise_travels(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platform_z: float, min_height: float,
                   spacing: float = 2.0, lifts: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0),
-                  material: PrintedMaterial | None = None) -> tuple[Toolpaths, CollisionReport, dict]:
+                  material: PrintedMaterial | None = None, consume: bool = False
+                  ) -> tuple[Toolpaths, CollisionReport, dict]:
     """Toolpaths with every travel collision (kind TRAVEL_PATH) replaced by a lifted detour where one of
     ``lifts`` clears it, or else a route by the clearance plane that does, the report with those collisions
     removed and the others' indices shifted, and a summary (detours, how many by the clearance plane, their
     largest rise above the travel's higher end, travels left colliding). ``material``: the print's
-    (``PrintedMaterial.of_toolpaths``), when the caller has it; detours lay no material."""
+    (``PrintedMaterial.of_toolpaths``), when the caller has it; detours lay no material. With ``consume`` the
+    arrays of ``tp`` are dropped from it one by one as their copies with the detours are made (``tp`` is left
+    empty where detours were inserted), so that the print is not held twice."""
     travel = np.flatnonzero(report.kind == TRAVEL_PATH)
     summary = {"n_travels_lifted": 0, "n_travels_by_clearance_plane": 0, "max_lift_mm": 0.0,
                "n_travels_unresolved": int(len(travel))}
@@ -113,10 +116,14 @@ def raise_travels(tp: Toolpaths, report: CollisionReport, nozzle: Nozzle, platfo
     ins_xyz = np.concatenate([detours[int(j)][0] for j in at])
     ins_axis = np.concatenate([detours[int(j)][1] for j in at])
     where = np.repeat(at, counts)
-    ins = lambda arr, val: np.insert(arr, where, val, axis=0)  # noqa: E731
-    out = Toolpaths(layer=ins(tp.layer, tp.layer[where]), path=ins(tp.path, -1), xyz=ins(tp.xyz, ins_xyz),
-                    axis=ins(tp.axis, ins_axis), thickness=ins(tp.thickness, 0.0), width=ins(tp.width, 0.0),
-                    extrude=ins(tp.extrude, False), attrs=dict(tp.attrs))
+    values = {"layer": tp.layer[where], "path": -1, "xyz": ins_xyz, "axis": ins_axis, "thickness": 0.0, "width": 0.0,
+              "extrude": False}
+    columns = {}
+    for name in Toolpaths.ARRAYS:
+        columns[name] = np.insert(getattr(tp, name), where, values.pop(name), axis=0)
+        if consume:
+            setattr(tp, name, getattr(tp, name)[:0].copy())
+    out = Toolpaths(**columns, attrs=dict(tp.attrs))
     keep = ~np.isin(report.indices, at) | (report.kind != TRAVEL_PATH)
     added = np.r_[0, np.cumsum(counts)]
     shift = added[np.searchsorted(at, report.indices[keep], side="right")]

@@ -92,7 +92,8 @@ class RunResults:
     field_history: dict[str, np.ndarray]
     layers: Layers
     toolpaths: Toolpaths
-    #: the machine program (ProgramMoves where ``gcode`` holds its G-code: what the preview draws)
+    #: the machine program (ProgramMoves where ``gcode`` holds its G-code: what the preview draws); a stored run's is
+    #: its profile, part offset and attrs, its moves read by ``read()`` (``tasks/codec.py: StoredProgram``)
     program: ProgramMoves
     print_metrics: dict
     #: where the head hits, by print (the first print and the printed one), as their figure draws it
@@ -242,7 +243,8 @@ Job = Callable[[], dict[str, str]]
 
 def figure_jobs(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> list[tuple[float, Job]]:
     """The report's pictures under ``figs`` as independent jobs, in the report's order, each with a rough cost
-    (seconds on the ring) by which :class:`ExportJobs` starts the longest first."""
+    (seconds on the ring) by which :class:`ExportJobs` starts the longest first; those that draw the toolpaths are in
+    :data:`TOOLPATH_FIGURES`."""
     B, keep, lpd = run.samples, ~run.samples.on_platform, run.lpd_b
     planar = np.tile(PLANAR, (len(B.points), 1))
     tp = run.toolpaths
@@ -310,6 +312,12 @@ def figure_jobs(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) 
         jobs.append((0.35, learning))
     jobs += [(0.45, toolpaths), (0.5, layer_toolpaths), (0.6, thickness), (0.3, collisions)]
     return jobs
+
+
+#: the figures (their jobs' names) that draw the toolpaths' waypoints
+TOOLPATH_FIGURES = frozenset({"toolpaths", "layer_toolpaths", "thickness"})
+#: a print of at least this many waypoints is exported in two rounds (``write_outputs``)
+TWO_ROUNDS_WAYPOINTS = 20_000_000
 
 
 def draw_figures(figs: Path, run: RunResults, alpha_deg: float, beta_deg: float) -> dict[str, str]:
@@ -424,30 +432,45 @@ class ExportJobs:
         """Start the helper (where one can run) on ``jobs`` ((cost, job), in the report's order)."""
         self.shared = SharedJobs([released(job) for _, job in jobs], [cost for cost, _ in jobs])
 
-    def finish(self) -> dict[str, str]:
-        """Do the jobs left here and wait for the helper's: the figures' {caption: path relative to the output
-        folder}, in the jobs' order."""
-        figures: dict[str, str] = {}
-        for drawn in self.shared.finish():
-            figures.update(drawn)
-        return figures
+    def finish(self) -> list[dict[str, str]]:
+        """Do the jobs left here and wait for the helper's: each job's figures ({caption: path relative to the output
+        folder}), in the jobs' order."""
+        return list(self.shared.finish())
 
 
 def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
                   ) -> dict[str, Any]:
     """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, preview.html, figures, metrics.json and
-    report.md to ``out_dir``; returns the metrics. The figures and the toolpaths' CSV and VTP are shared with a
-    helper process (:class:`ExportJobs`) while this one writes the rest."""
+    report.md to ``out_dir``; returns the metrics. The figures, the preview and the toolpaths' CSV and VTP are shared
+    with a helper process (:class:`ExportJobs`) while this one writes the rest. A stored print of at least
+    :data:`TWO_ROUNDS_WAYPOINTS` waypoints is shared in two rounds, so that its program's moves and its toolpaths are
+    never in memory at once: the preview, the CSV and the figures without waypoints first, then the toolpaths read
+    for the VTP and the figures that draw them."""
     d = Path(out_dir)
     run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
-    # the preview and the VTP are the jobs that make per-move arrays: one job, so that they never run at once
-    files: list[tuple[float, Job]] = [
-        (1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths))),
-        (1.7, lambda: _quiet((write_run_preview(d / PREVIEW_FILE, run),
-                              release_freed_memory(), write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths)))),
-    ]
+    jobs = [(cost, job, job.__name__ in TOOLPATH_FIGURES)
+            for cost, job in figure_jobs(d / "figures", run, alpha_deg, beta_deg)]
+    # the CSV reads a stored print a block at a time: it needs no toolpaths in memory
+    jobs.append((1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths)), False))
+    preview = lambda: _quiet(write_run_preview(d / PREVIEW_FILE, run))                     # noqa: E731
+    vtp = lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))          # noqa: E731
+    two_rounds = (not run.toolpaths.loaded
+                  and int(run.print_metrics.get("n_waypoints", 0)) >= TWO_ROUNDS_WAYPOINTS)
+    if two_rounds:
+        # a large stored print: first the preview (the program's moves and the bead widths, read where it is drawn),
+        # the CSV and the figures without waypoints, the toolpaths not yet read; then the toolpaths read, shared with
+        # a new helper, for the VTP and the figures that draw them. Never the program and the toolpaths at once.
+        jobs += [(1.0, preview, False), (0.7, vtp, True)]
+    else:
+        # the program's moves and the toolpaths read here, before the helper starts: shared with it, not read twice;
+        # the preview and the VTP are the jobs that make per-move arrays: one job, so that they never run at once
+        run.program = run.program.read()
+        run.toolpaths.xyz  # noqa: B018
+        jobs.append((1.7, lambda: (preview(), release_freed_memory(), vtp())[-1], False))
+    later = [i for i, (_, _, uses) in enumerate(jobs) if two_rounds and uses]
+    now = [i for i in range(len(jobs)) if i not in later]
     release_freed_memory()   # what reading the run dropped (a first print's waypoints): not into the helper's share
-    jobs = ExportJobs(figure_jobs(d / "figures", run, alpha_deg, beta_deg) + files)
+    first = ExportJobs([jobs[i][:2] for i in now])
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
     write_field_vtu(d / "field.vtu", run.field)
@@ -456,7 +479,11 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
                         csv=False, vtp=False)
     release_freed_memory()
     metrics = run_metrics(run, alpha_deg, beta_deg)
-    figures = jobs.finish()
+    drawn = dict(zip(now, first.finish()))
+    if later:
+        run.toolpaths.xyz  # noqa: B018 - read here, before the helper starts: shared with it, not read twice
+        drawn.update(zip(later, ExportJobs([jobs[i][:2] for i in later]).finish()))
+    figures = {caption: path for i in sorted(drawn) for caption, path in drawn[i].items()}
     sections = {}
     if run.verify is not None and run.verify[1].get("parts"):
         sections["Strength of the printed part"] = strength_table(run.verify[1])
@@ -510,7 +537,8 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
 def write_run_preview(path: Path, run: RunResults) -> PreviewData:
     """``preview.html`` of the run's program (beside print.gcode): its moves by forward kinematics, bead widths and
     the printed program's collisions; the decimated moves it draws."""
-    return write_preview(path, run.program, run.toolpaths.width, run.collided, run.model, run.print_metrics)
+    return write_preview(path, run.program.read(), run.toolpaths.column("width"), run.collided, run.model,
+                         run.print_metrics)
 
 
 def _quiet(_: Any) -> dict[str, str]:

@@ -16,6 +16,7 @@ import contextlib
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ContextManager, Protocol
 
@@ -76,8 +77,8 @@ class StepContext:
     """What a step's core call uses of the runner: ``log`` (the run's log), ``progress(description, total)`` (a
     context manager giving the bar's ``update``), ``say(line)`` (a line on the terminal and in the log),
     ``checkpoints`` (a resumable step's; None: it starts over), ``on_step(step, info)`` (called after every step of an
-    optimisation with all its figures) and ``owns_inputs`` (the inputs were read for this call alone: a step may take
-    their arrays over)."""
+    optimisation with all its figures), ``owns_inputs`` (the inputs were read for this call alone: a step may take
+    their arrays over) and ``scratch`` (a folder on the store's disk for temporary files; None: the system's)."""
 
     log: logging.Logger | logging.LoggerAdapter = field(default_factory=lambda: logging.getLogger("neuralslicer"))
     progress: Callable[[str, int], ContextManager[Update]] = _no_bar
@@ -85,6 +86,7 @@ class StepContext:
     checkpoints: Checkpoints | None = None
     on_step: Callable[[int, dict], None] | None = None
     owns_inputs: bool = False
+    scratch: Path | None = None
 
     def line(self, message: str) -> None:
         """A line for whoever follows the run (``say``, else the log at INFO)."""
@@ -321,7 +323,8 @@ def motion_step(model: Model, toolpaths: Toolpaths, config: ToolpathConfig, mach
     from neuralslicer.motion.plan import plan_motion_of
 
     motion = Motion(*plan_motion_of(toolpaths, platform_z=model.solid.platform_z, solid_H=model.solid.H,
-                                    toolpath_cfg=config, profile=machine, consume=ctx.owns_inputs))
+                                    toolpath_cfg=config, profile=machine, consume=ctx.owns_inputs,
+                                    scratch=ctx.scratch))
     ctx.log.info("motion: %d waypoints, %d collisions", motion.metrics["n_waypoints"], motion.metrics["n_collisions"])
     return motion
 

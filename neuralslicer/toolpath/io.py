@@ -19,10 +19,9 @@ def write_waypoints_csv(path: str | Path, tp: Toolpaths) -> Path:
     fmt = ["%d", "%d", "%.6f", "%.6f", "%.6f", "%.7f", "%.7f", "%.7f", "%.6f", "%.6f", "%d"]
     with atomic_path(path) as tmp, open(tmp, "w") as fh:
         fh.write(",".join(CSV_COLUMNS) + "\n")
-        for a in range(0, len(tp), CSV_CHUNK_ROWS):
-            b = a + CSV_CHUNK_ROWS
-            table = np.column_stack([tp.layer[a:b], tp.path[a:b], tp.xyz[a:b], tp.axis[a:b], tp.thickness[a:b],
-                                     tp.width[a:b], tp.extrude[a:b].astype(np.int64)])
+        for block in tp.blocks(CSV_CHUNK_ROWS):   # a stored print's read a block at a time
+            table = np.column_stack([block.layer, block.path, block.xyz, block.axis, block.thickness, block.width,
+                                     block.extrude.astype(np.int64)])
             np.savetxt(fh, table, fmt=fmt, delimiter=",")
     return Path(path)
 

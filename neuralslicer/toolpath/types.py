@@ -1,6 +1,7 @@
 """The ``Toolpaths`` result: waypoints in print order with per-waypoint process data."""
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -78,6 +79,20 @@ class Toolpaths:
     def rows(self, lo: int, hi: int) -> "Toolpaths":
         """The waypoints [lo, hi) as views of these arrays (no copy; no attrs)."""
         return Toolpaths(**{name: getattr(self, name)[lo:hi] for name in self.ARRAYS})
+
+    @property
+    def loaded(self) -> bool:
+        """Whether the columns are in memory (a stored print's, ``tasks/codec.py: StoredToolpaths``, may not be)."""
+        return True
+
+    def column(self, name: str) -> np.ndarray:
+        """One column (one of ``ARRAYS``), without the others where they are not in memory."""
+        return getattr(self, name)
+
+    def blocks(self, rows: int) -> Iterator["Toolpaths"]:
+        """The waypoints ``rows`` at a time (views; a stored print's read a block at a time)."""
+        for lo in range(0, len(self), rows):
+            yield self.rows(lo, lo + rows)
 
     def deposited_volume(self) -> float:
         """Material volume (mm^3): sum over extruding moves of length x mean thickness x width."""

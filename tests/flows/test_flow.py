@@ -101,6 +101,26 @@ def test_output_contract_cache_hit_and_selective_rerun(tmp_path, small_part, cap
     assert len(list((out / "layers").glob("layer_*.ply"))) == json.loads((out / "metrics.json").read_text())["n_layers"]
 
 
+def test_a_large_prints_export_in_two_rounds_writes_the_same_files(tmp_path, small_part, monkeypatch):
+    """The export of a stored print shared in two rounds (the program's moves, then the toolpaths: a large print's
+    way, here with the threshold at 0) writes the same preview, CSV, VTP, G-code and report as in one round."""
+    import neuralslicer.run.outputs as outputs
+
+    cfg = write_config(tmp_path / "cfg.yaml")
+    assert main(slice_cmd(small_part, tmp_path / "one", cfg, "--objectives", "none")) == 0
+    rounds: list[int] = []
+    real = outputs.ExportJobs
+    monkeypatch.setattr(outputs, "ExportJobs", lambda jobs: rounds.append(len(jobs)) or real(jobs))
+    monkeypatch.setattr(outputs, "TWO_ROUNDS_WAYPOINTS", 0)
+    assert main(slice_cmd(small_part, tmp_path / "two", cfg, "--objectives", "none",
+                          "--store", str(tmp_path / "one" / "store.zarr"))) == 0
+    assert len(rounds) == 2 and rounds[1] == 4            # the VTP and the three figures that draw the waypoints
+    for name in ("preview.html", "toolpaths/waypoints.csv", "toolpaths.vtp", "print.gcode", "report.md"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes(), name
+    assert sorted(p.name for p in (tmp_path / "one" / "figures").iterdir()) == sorted(
+        p.name for p in (tmp_path / "two" / "figures").iterdir())
+
+
 def test_layers_lie_inside_the_solid(tmp_path, small_part):
     cfg = write_config(tmp_path / "cfg.yaml")
     out = tmp_path / "run"

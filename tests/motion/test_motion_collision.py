@@ -10,6 +10,7 @@ from neuralslicer.motion.head import cone_ball, holder_ball
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.toolpath import toolpaths
 from neuralslicer.toolpath.synthetic import cap_stack, planar_stack, square_layer
+from neuralslicer.toolpath.types import Toolpaths
 
 from head_reference import NOZZLE, inside_head
 
@@ -164,6 +165,24 @@ def test_a_colliding_travel_is_lifted_over_the_tower():
     # printing waypoints are untouched, in the same order
     on = out.path >= 0
     assert np.array_equal(out.xyz[on], tp.xyz[tp.path >= 0])
+
+
+def test_lifting_travels_in_place_gives_the_same_print_and_empties_the_input():
+    """``consume`` (the motion step's way: the print is not held twice) makes the same toolpaths and report as a
+    copy, column by column, and leaves the toolpaths it was given without waypoints."""
+    from neuralslicer.motion.travel import raise_travels
+
+    tp = toolpaths(_tower_and_two_pads(), platform_z=0.0)
+    rep = check_collisions(tp, NOZZLE, platform_z=0.0)
+    ref, ref_left, ref_summary = raise_travels(tp, rep, NOZZLE, platform_z=0.0, min_height=0.5)
+    given = Toolpaths(**{name: getattr(tp, name).copy() for name in Toolpaths.ARRAYS}, attrs=dict(tp.attrs))
+    out, left, summary = raise_travels(given, rep, NOZZLE, platform_z=0.0, min_height=0.5, consume=True)
+    assert rep.count and summary == ref_summary and np.array_equal(left.indices, ref_left.indices)
+    for name in Toolpaths.ARRAYS:
+        assert np.array_equal(getattr(out, name), getattr(ref, name))
+        assert getattr(out, name).dtype == getattr(ref, name).dtype
+        assert len(getattr(given, name)) == 0
+    assert len(tp) == len(ref) - 2 * rep.count                                   # the copy's input is untouched
 
 
 def test_a_travel_no_lift_clears_goes_by_the_clearance_plane():
