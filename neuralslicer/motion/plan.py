@@ -75,6 +75,7 @@ def plan_motion_of(tp: Toolpaths, *, platform_z: float, solid_H: Callable[[np.nd
     tp, platform = clamp_to_platform(tp, profile.nozzle, platform_z, cfg.collision_tilt_deg)
     # the beads as planned: one structure for the check, the lifts and the tilts (they move the nozzle, not the beads)
     material = PrintedMaterial.of_toolpaths(tp)
+    release_freed_memory()   # the build's sort orders and keys (some 40 bytes a waypoint): not kept through the check
     report = check_collisions(tp, profile.nozzle, platform_z, material=material)
     t2 = time.perf_counter()
     min_height = default_min_height(tp)
