@@ -148,19 +148,21 @@ class StoredToolpaths(Toolpaths):
 
     def __init__(self, ref: ArtifactRef) -> None:  # noqa: D107 - the dataclass's fields come from the store
         self.ref = ref
-        self.attrs = Toolpaths.from_arrays({k: np.zeros(0) for k in Toolpaths.ARRAYS},
-                                           attrs_of(ref)["toolpaths"]).attrs
+        self.attrs = Toolpaths.stored_attrs(attrs_of(ref)["toolpaths"])
 
     def __getattr__(self, name: str) -> Any:
         """A column: every column read from the store on the first use of one."""
         if name not in Toolpaths.ARRAYS:
             raise AttributeError(name)
-        names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS]
-        arrays, _ = read(self.ref, names)
-        whole = Toolpaths.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()})
-        for k in Toolpaths.ARRAYS:
-            setattr(self, k, getattr(whole, k))
-        return getattr(self, name)
+        return getattr(self.load(), name)
+
+    def load(self) -> Toolpaths:
+        """These toolpaths with every column read from the store (once)."""
+        if not self.loaded:
+            arrays, _ = read(self.ref, [f"toolpaths/{k}" for k in Toolpaths.ARRAYS])
+            for k in Toolpaths.ARRAYS:
+                setattr(self, k, Toolpaths.stored_column(k, arrays[f"toolpaths/{k}"]))
+        return self
 
     @property
     def loaded(self) -> bool:
@@ -171,9 +173,7 @@ class StoredToolpaths(Toolpaths):
         """One column, read alone from the store unless all are in memory."""
         if self.loaded:
             return getattr(self, name)
-        column = Toolpaths.from_arrays({**{k: np.zeros(0) for k in Toolpaths.ARRAYS},
-                                        name: read(self.ref, [f"toolpaths/{name}"])[0][f"toolpaths/{name}"]})
-        return getattr(column, name)
+        return Toolpaths.stored_column(name, read(self.ref, [f"toolpaths/{name}"])[0][f"toolpaths/{name}"])
 
     def blocks(self, rows: int) -> Iterator[Toolpaths]:
         """The waypoints ``rows`` at a time, read from the store a block at a time unless all are in memory."""

@@ -29,10 +29,13 @@ class ParkedToolpaths:
         """Park ``tp``: with ``folder`` each column is written there and dropped from ``tp`` at once (the print is
         never held twice; ``tp`` is left empty), without it ``tp`` is kept as it is."""
         self.attrs, self._n, self._folder = tp.attrs, len(tp), folder
-        self._tp: Toolpaths | None = None if folder is not None else tp
-        for name in Toolpaths.ARRAYS if folder is not None else ():
+        self._tp: Toolpaths | None = tp
+        if folder is None:
+            return
+        for name in Toolpaths.ARRAYS:
             np.save(folder / f"{name}.npy", getattr(tp, name), allow_pickle=False)
             setattr(tp, name, getattr(tp, name)[:0].copy())
+        self._tp = None
 
     def __len__(self) -> int:
         """Number of waypoints."""

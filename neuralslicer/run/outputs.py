@@ -438,39 +438,41 @@ class ExportJobs:
         return list(self.shared.finish())
 
 
-def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
-                  ) -> dict[str, Any]:
-    """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, preview.html, figures, metrics.json and
-    report.md to ``out_dir``; returns the metrics. The figures, the preview and the toolpaths' CSV and VTP are shared
-    with a helper process (:class:`ExportJobs`) while this one writes the rest. A stored print of at least
-    :data:`TWO_ROUNDS_WAYPOINTS` waypoints is shared in two rounds, so that its program's moves and its toolpaths are
-    never in memory at once: the preview, the CSV and the figures without waypoints first, then the toolpaths read
-    for the VTP and the figures that draw them."""
-    d = Path(out_dir)
-    run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
-    jobs = [(cost, job, job.__name__ in TOOLPATH_FIGURES)
-            for cost, job in figure_jobs(d / "figures", run, alpha_deg, beta_deg)]
+def export_rounds(d: Path, run: RunResults, alpha_deg: float, beta_deg: float
+                  ) -> tuple[dict[int, tuple[float, Job]], dict[int, tuple[float, Job]]]:
+    """The export's jobs (figures, CSV, preview, VTP into ``d``) by their place in the report, in two rounds: those
+    to share at once and those once the toolpaths are read (none but for a stored print of at least
+    :data:`TWO_ROUNDS_WAYPOINTS` waypoints, whose program's moves and toolpaths are never in memory at once: the
+    preview, the CSV and the figures without waypoints first, then the VTP and the figures that draw them). In one
+    round the program's moves and the toolpaths are read here, before the helper starts: shared with it."""
+    jobs = [(cost, job, job.__name__ in TOOLPATH_FIGURES) for cost, job in figure_jobs(d / "figures", run, alpha_deg,
+                                                                                       beta_deg)]
     # the CSV reads a stored print a block at a time: it needs no toolpaths in memory
     jobs.append((1.0, lambda: _quiet(write_waypoints_csv(d / "toolpaths" / "waypoints.csv", run.toolpaths)), False))
     preview = lambda: _quiet(write_run_preview(d / PREVIEW_FILE, run))                     # noqa: E731
     vtp = lambda: _quiet(write_toolpaths_vtp(d / "toolpaths.vtp", run.toolpaths))          # noqa: E731
-    two_rounds = (not run.toolpaths.loaded
-                  and int(run.print_metrics.get("n_waypoints", 0)) >= TWO_ROUNDS_WAYPOINTS)
-    if two_rounds:
-        # a large stored print: first the preview (the program's moves and the bead widths, read where it is drawn),
-        # the CSV and the figures without waypoints, the toolpaths not yet read; then the toolpaths read, shared with
-        # a new helper, for the VTP and the figures that draw them. Never the program and the toolpaths at once.
+    if not run.toolpaths.loaded and int(run.print_metrics.get("n_waypoints", 0)) >= TWO_ROUNDS_WAYPOINTS:
         jobs += [(1.0, preview, False), (0.7, vtp, True)]
-    else:
-        # the program's moves and the toolpaths read here, before the helper starts: shared with it, not read twice;
-        # the preview and the VTP are the jobs that make per-move arrays: one job, so that they never run at once
-        run.program = run.program.read()
-        run.toolpaths.xyz  # noqa: B018
-        jobs.append((1.7, lambda: (preview(), release_freed_memory(), vtp())[-1], False))
-    later = [i for i, (_, _, uses) in enumerate(jobs) if two_rounds and uses]
-    now = [i for i in range(len(jobs)) if i not in later]
+        return ({i: (cost, job) for i, (cost, job, uses) in enumerate(jobs) if not uses},
+                {i: (cost, job) for i, (cost, job, uses) in enumerate(jobs) if uses})
+    run.program = run.program.read()
+    run.toolpaths.load()
+    # the preview and the VTP are the jobs that make per-move arrays: one job, so that they never run at once
+    jobs.append((1.7, lambda: (preview(), release_freed_memory(), vtp())[-1], False))
+    return {i: (cost, job) for i, (cost, job, _) in enumerate(jobs)}, {}
+
+
+def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_deg: float, robot: bool = False
+                  ) -> dict[str, Any]:
+    """Write model.ply, samples_B.ply, field.vtu, layers/, the print files, preview.html, figures, metrics.json and
+    report.md to ``out_dir``; returns the metrics. The figures, the preview and the toolpaths' CSV and VTP are shared
+    with a helper process (:class:`ExportJobs`) while this one writes the rest, a large stored print's in two rounds
+    (:func:`export_rounds`)."""
+    d = Path(out_dir)
+    run.lpd_b, run.lpd_t  # noqa: B018 - the field's LPD at B and T, computed once for the metrics and the figures
+    now, later = export_rounds(d, run, alpha_deg, beta_deg)
     release_freed_memory()   # what reading the run dropped (a first print's waypoints): not into the helper's share
-    first = ExportJobs([jobs[i][:2] for i in now])
+    first = ExportJobs(list(now.values()))
     write_ply(d / "model.ply", run.surface)
     write_samples_ply(d / "samples_B.ply", run.samples)
     write_field_vtu(d / "field.vtu", run.field)
@@ -481,8 +483,8 @@ def write_outputs(out_dir: str | Path, run: RunResults, alpha_deg: float, beta_d
     metrics = run_metrics(run, alpha_deg, beta_deg)
     drawn = dict(zip(now, first.finish()))
     if later:
-        run.toolpaths.xyz  # noqa: B018 - read here, before the helper starts: shared with it, not read twice
-        drawn.update(zip(later, ExportJobs([jobs[i][:2] for i in later]).finish()))
+        run.toolpaths.load()   # read here, before the helper starts: shared with it, not read twice
+        drawn.update(zip(later, ExportJobs(list(later.values())).finish()))
     figures = {caption: path for i in sorted(drawn) for caption, path in drawn[i].items()}
     sections = {}
     if run.verify is not None and run.verify[1].get("parts"):

@@ -85,6 +85,10 @@ class Toolpaths:
         """Whether the columns are in memory (a stored print's, ``tasks/codec.py: StoredToolpaths``, may not be)."""
         return True
 
+    def load(self) -> "Toolpaths":
+        """These toolpaths with every column in memory (read now where they were not)."""
+        return self
+
     def column(self, name: str) -> np.ndarray:
         """One column (one of ``ARRAYS``), without the others where they are not in memory."""
         return getattr(self, name)
@@ -114,19 +118,24 @@ class Toolpaths:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], attrs: dict | None = None) -> "Toolpaths":
         """Inverse of ``to_arrays``."""
+        return cls(**{name: cls.stored_column(name, arrays[name]) for name in cls.ARRAYS},
+                   attrs=cls.stored_attrs(attrs))
+
+    @staticmethod
+    def stored_column(name: str, array: np.ndarray) -> np.ndarray:
+        """One stored column (of ``ARRAYS``) in its dtype and shape, as ``from_arrays`` reads it."""
+        if name == "extrude":
+            return np.asarray(array).astype(bool)
+        column = np.asarray(array, dtype=np.int64 if name in ("layer", "path") else np.float64)
+        return column.reshape(-1, 3) if name in ("xyz", "axis") else column
+
+    @staticmethod
+    def stored_attrs(attrs: dict | None) -> dict:
+        """The attrs of stored toolpaths without what ``to_arrays`` adds (schema version, units, frame)."""
         attrs = dict(attrs or {})
         for key in ("schema_version", "units", "frame"):
             attrs.pop(key, None)
-        return cls(
-            layer=np.asarray(arrays["layer"], dtype=np.int64),
-            path=np.asarray(arrays["path"], dtype=np.int64),
-            xyz=np.asarray(arrays["xyz"], dtype=np.float64).reshape(-1, 3),
-            axis=np.asarray(arrays["axis"], dtype=np.float64).reshape(-1, 3),
-            thickness=np.asarray(arrays["thickness"], dtype=np.float64),
-            width=np.asarray(arrays["width"], dtype=np.float64),
-            extrude=np.asarray(arrays["extrude"]).astype(bool),
-            attrs=attrs,
-        )
+        return attrs
 
     @classmethod
     def empty(cls) -> "Toolpaths":
