@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from neuralslicer.motion.head import _inside_head, head_lowest_z, platform_clearance  # noqa: F401
-from neuralslicer.motion.kinematics import ROWS_PER_BLOCK
 from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.motion.scan import HeadPart, scan
@@ -160,22 +159,15 @@ def _holder_hits(material: PrintedMaterial, part: HeadPart, nozzle: Nozzle, tips
     (``reach``: the holder's farthest point from the tip) of the anchor's, so it is clear where ``D`` exceeds that;
     the others are scanned one by one (consecutive waypoints lie about half a millimetre apart with nearly the same
     axis, so most poses are cleared by an anchor)."""
+    from neuralslicer.motion.scan_kernel import anchor_cleared     # numba only where the holder is scanned
+
     todo = np.flatnonzero(~hit)
     if len(todo) >= 4 * HOLDER_ANCHOR_EVERY:
-        rank = np.arange(len(todo))
         anchors = todo[::HOLDER_ANCHOR_EVERY]
-        until = todo[np.minimum(rank[::HOLDER_ANCHOR_EVERY] + HOLDER_ANCHOR_EVERY, len(todo) - 1)]
+        until = todo[np.minimum(np.arange(0, len(todo), HOLDER_ANCHOR_EVERY) + HOLDER_ANCHOR_EVERY, len(todo) - 1)]
         _, _, clear = scan(material, part, tips[anchors], axes[anchors], visible[until], HOLDER_MARGIN)
         reach = float(np.hypot(nozzle.cone_length + nozzle.holder_length, nozzle.holder_radius))
-        cleared = np.zeros(len(todo), bool)
-        cleared[rank[::HOLDER_ANCHOR_EVERY]] = clear > _REACH_TOL
-        for lo in range(0, len(todo), ROWS_PER_BLOCK):       # in blocks: the (n, 3) differences of a long print
-            r, j = rank[lo:lo + ROWS_PER_BLOCK], todo[lo:lo + ROWS_PER_BLOCK]
-            for k in (r // HOLDER_ANCHOR_EVERY, np.minimum(r // HOLDER_ANCHOR_EVERY + 1, len(anchors) - 1)):
-                a = anchors[k]
-                delta = np.linalg.norm(tips[j] - tips[a], axis=1)
-                gamma = np.arccos(np.clip(np.einsum("ij,ij->i", axes[j], axes[a]), -1.0, 1.0))
-                cleared[lo:lo + ROWS_PER_BLOCK] |= clear[k] > delta + gamma * reach + _REACH_TOL
+        cleared = anchor_cleared(tips, axes, todo, clear, HOLDER_ANCHOR_EVERY, reach, _REACH_TOL)
         todo = todo[~cleared]
     h, w, _ = scan(material, part, tips[todo], axes[todo], visible[todo])
     hit[todo[h]] = True

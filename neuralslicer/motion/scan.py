@@ -9,23 +9,23 @@ left, those laid before the pose (a prefix of each cube's list), are tested one 
 membership rule. With a ``margin`` the scan also returns a lower bound on the distance from the part to the
 material, capped at the margin (cubes within the margin are split until their bound is tight enough).
 
-Poses are processed in chunks, in parallel threads (numpy releases the GIL in the work that counts).
+Poses are processed in chunks, in parallel threads: each pose's walk is compiled (``motion/scan_kernel.py``) and
+releases the GIL.
 """
 from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-from neuralslicer.motion.head import cone_ball, cone_bottom, holder_ball, in_cone, in_holder
+from neuralslicer.motion.head import cone_ball, cone_bottom, holder_ball
 from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
 
-#: poses per chunk of work (bounds the memory of the cube pairs)
+#: poses per chunk of work (one call of the compiled scan)
 CHUNK = 2048
 #: worker threads (None: the cores this process may use)
 WORKERS: int | None = None
@@ -41,9 +41,17 @@ class HeadPart:
     radius: float
     #: per half-plane (a, b, c): signed distance a h + b radial + c
     planes: tuple[tuple[float, float, float], ...]
-    inside: Callable[[FloatArray, FloatArray], BoolArray]
+    #: membership (h_lo, strict, h_hi, slope, radius): h above h_lo (strictly if ``strict``), h at most h_hi, radial
+    #: at most slope h + radius (``in_cone``'s and ``in_holder``'s rules)
+    rule: tuple[float, float, float, float, float]
     #: level of the pyramid the scan starts on
     top_level: int
+
+    def inside(self, h: FloatArray, radial: FloatArray) -> BoolArray:
+        """The exact membership rule (k,) at heights ``h`` along the axis and distances ``radial`` from it."""
+        h_lo, strict, h_hi, slope, radius = self.rule
+        low = h > h_lo if strict else h >= h_lo
+        return low & (h <= h_hi) & (radial <= h * slope + radius)
 
     def bound(self, h: FloatArray, radial: FloatArray) -> FloatArray:
         """Largest signed half-plane distance (k,): < 0 exactly inside, a lower bound on the distance outside."""
@@ -60,7 +68,8 @@ class HeadPart:
         m, L = cone_bottom(nozzle, min_height), nozzle.cone_length
         al = np.radians(nozzle.cone_half_angle_deg)
         planes = ((-1.0, 0.0, m), (1.0, 0.0, -L), (-float(np.sin(al)), float(np.cos(al)), 0.0))
-        return cls(c, r, planes, lambda h, rho: in_cone(h, rho, nozzle, min_height), _level_for(material, r, 1.7))
+        ta = float(np.tan(np.radians(nozzle.cone_half_angle_deg)))           # as in_cone has it
+        return cls(c, r, planes, (float(min_height), 0.0, L, ta, 0.0), _level_for(material, r, 1.7))
 
     @classmethod
     def holder(cls, nozzle: Nozzle, material: PrintedMaterial) -> "HeadPart":
@@ -68,7 +77,8 @@ class HeadPart:
         c, r = holder_ball(nozzle)
         L = nozzle.cone_length
         planes = ((-1.0, 0.0, L), (1.0, 0.0, -(L + nozzle.holder_length)), (0.0, 1.0, -nozzle.holder_radius))
-        return cls(c, r, planes, lambda h, rho: in_holder(h, rho, nozzle), _level_for(material, r, 0.9))
+        return cls(c, r, planes, (L, 1.0, L + nozzle.holder_length, 0.0, nozzle.holder_radius),   # as in_holder
+                   _level_for(material, r, 0.9))
 
 
 def _level_for(material: PrintedMaterial, radius: float, cubes: float) -> int:
@@ -96,11 +106,19 @@ def scan(material: PrintedMaterial, part: HeadPart, tips: FloatArray, axes: Floa
     hit, witness, clear = np.zeros(n, bool), np.full(n, -1, np.int64), np.full(n, float(margin))
     if n == 0:
         return hit, witness, clear
+    from neuralslicer.motion.scan_kernel import scan_poses    # numba (~70 MB) only in the processes that scan
+
+    tips, axes = np.ascontiguousarray(tips, np.float64), np.ascontiguousarray(axes, np.float64)
+    visible = np.ascontiguousarray(visible)
+    grid = _Pyramid.of(material, part, margin)
     chunks = [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
     def run(sl: slice) -> None:
         """Scan one chunk into its rows of the results."""
-        hit[sl], witness[sl], clear[sl] = _scan_chunk(material, part, tips[sl], axes[sl], visible[sl], margin)
+        centre = material.cube_of(tips[sl] + part.centre * axes[sl], part.top_level)
+        scan_poses(grid.first, grid.dims, grid.cell_sizes, grid.radii, material.origin, material.stride,
+                   material.start, material.time, material.columns, centre, grid.offsets, part.top_level, tips[sl],
+                   axes[sl], visible[sl], grid.planes, grid.rule, float(margin), hit[sl], witness[sl], clear[sl])
 
     if len(chunks) == 1 or workers() == 1:
         for sl in chunks:
@@ -111,128 +129,25 @@ def scan(material: PrintedMaterial, part: HeadPart, tips: FloatArray, axes: Floa
     return hit, witness, clear
 
 
-def _flat(material: PrintedMaterial, level: int, i: IndexArray, j: IndexArray, k: IndexArray) -> IndexArray:
-    """Flat index of cube coordinates at a level."""
-    d = material.dims[level]
-    return (i * d[1] + j) * d[2] + k
+@dataclass(frozen=True)
+class _Pyramid:
+    """What the compiled scan reads besides the material's arrays: the levels' first keys and dims, the cubes' edges
+    and half diagonals (with the margin of the classification's rounding), the top level's stencil and the part."""
 
+    first: tuple[IndexArray, ...]
+    dims: IndexArray
+    cell_sizes: FloatArray
+    radii: FloatArray
+    offsets: IndexArray
+    planes: FloatArray
+    rule: FloatArray
 
-def _coords(material: PrintedMaterial, level: int, flat: IndexArray) -> tuple[IndexArray, IndexArray, IndexArray]:
-    """Cube coordinates of flat indices at a level."""
-    d = material.dims[level]
-    k = flat % d[2]
-    rest = flat // d[2]
-    return rest // d[1], rest % d[1], k
-
-
-def _first_pairs(material: PrintedMaterial, part: HeadPart, tips: FloatArray, axes: FloatArray, margin: float
-                 ) -> tuple[IndexArray, IndexArray]:
-    """The (pose, flat cube) pairs of the part's top-level stencil that lie in the grid."""
-    level = part.top_level
-    offsets = material.stencil(part.radius + margin, level)
-    centre = material.cube_of(tips + part.centre * axes, level)
-    ext = np.abs(offsets).max(axis=0)
-    dims = material.dims[level]
-    inner = np.all((centre >= ext) & (centre < dims - ext), axis=1)
-    far = np.any((centre < -ext) | (centre >= dims + ext), axis=1)
-    pose_in = np.flatnonzero(inner)
-    off = _flat(material, level, *offsets.T)
-    pose = [np.repeat(pose_in, len(off))]
-    flat = [(_flat(material, level, *centre[pose_in].T)[:, None] + off[None, :]).reshape(-1)]
-    edge = np.flatnonzero(~inner & ~far)
-    if len(edge):
-        cube = (centre[edge][:, None, :] + offsets[None, :, :]).reshape(-1, 3)
-        ok = np.all((cube >= 0) & (cube < dims), axis=1)
-        pose.append(np.repeat(edge, len(offsets))[ok])
-        flat.append(_flat(material, level, *cube[ok].T))
-    return np.concatenate(pose), np.concatenate(flat)
-
-
-def _scan_chunk(material: PrintedMaterial, part: HeadPart, tips: FloatArray, axes: FloatArray, visible: IndexArray,
-                margin: float) -> tuple[BoolArray, IndexArray, FloatArray]:
-    """``scan`` of one chunk of poses, level by level from the part's top level down to the points."""
-    n = len(tips)
-    hit, witness, clear = np.zeros(n, bool), np.full(n, -1, np.int64), np.full(n, float(margin))
-    seen = visible.astype(np.int64) * material.stride
-    shift = [material.origin[c] - tips[:, c] for c in range(3)]          # per pose: cube centre - tip = this + ...
-    ax = [np.ascontiguousarray(axes[:, c]) for c in range(3)]
-    level = part.top_level
-    pose, flat = _first_pairs(material, part, tips, axes, margin)
-    while len(pose):
-        key = material.first[level][flat]
-        laid = (key < seen[pose]) & ~hit[pose]
-        pose, flat, key = pose[laid], flat[laid], key[laid]
-        s = material.cell_size(level)
-        i, j, k = _coords(material, level, flat)
-        d = [(c + 0.5) * s + shift[q][pose] for q, c in enumerate((i, j, k))]
-        h = d[0] * ax[0][pose] + d[1] * ax[1][pose] + d[2] * ax[2][pose]
-        rho = np.sqrt(np.maximum(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - h * h, 0.0))
-        split = _classify(material, part, level, pose, key, part.bound(h, rho), hit, witness, clear, margin)
-        pose, i, j, k = pose[split], i[split], j[split], k[split]
-        if level == 0:
-            _test_points(material, part, pose, _flat(material, 0, i, j, k), tips, axes, visible, hit, witness,
-                         clear, margin)
-            break
-        level -= 1
-        base = _flat(material, level, 2 * i, 2 * j, 2 * k)
-        pose = np.repeat(pose, 8)
-        flat = (base[:, None] + _flat(material, level, *_CHILDREN.T)[None, :]).reshape(-1)
-    clear[hit] = -np.inf
-    return hit, witness, clear
-
-
-#: the eight children of a cube, as offsets of twice its coordinates
-_CHILDREN = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(-1, 3)
-
-
-def _classify(material: PrintedMaterial, part: HeadPart, level: int, pose: IndexArray, key: IndexArray,
-              sd: FloatArray, hit: BoolArray, witness: IndexArray, clear: FloatArray, margin: float) -> BoolArray:
-    """Mark the poses with a cube wholly inside the part (``sd``: the part's bound at the cube centres), lower their
-    clearance by the cubes wholly outside it; the pairs to split (or, on the finest level, to test point by point)."""
-    r = 0.5 * np.sqrt(3.0) * material.cell_size(level) * (1 + 1e-9) + 1e-9
-    full = sd < -r
-    if full.any():
-        _mark(hit, witness, pose[full], key[full] % material.stride)
-    outside = sd > r
-    if margin > 0:
-        near = outside & (sd - r < margin)
-        if level > 0:                     # a cube within the margin gives a weak bound: split it instead
-            outside &= ~near | (sd - r > 0.5 * margin)
-            near &= outside
-        np.minimum.at(clear, pose[near], sd[near] - r)
-    return ~full & ~outside
-
-
-def _mark(hit: BoolArray, witness: IndexArray, pose: IndexArray, point: IndexArray) -> None:
-    """Mark the poses not hit yet among ``pose`` (k,), each with its first witness point."""
-    first = np.unique(pose, return_index=True)[1]
-    new = ~hit[pose[first]]
-    hit[pose[first][new]] = True
-    witness[pose[first][new]] = point[first][new]
-
-
-def _test_points(material: PrintedMaterial, part: HeadPart, pose: IndexArray, flat: IndexArray, tips: FloatArray,
-                 axes: FloatArray, visible: IndexArray, hit: BoolArray, witness: IndexArray, clear: FloatArray,
-                 margin: float) -> None:
-    """The exact test of the points laid before each pose in the finest cubes left (hits and clearances in place)."""
-    keep = ~hit[pose]
-    pose, flat = pose[keep], flat[keep]
-    if not len(pose):
-        return
-    lo = material.start[flat]
-    count = material.prefix_end(flat, visible[pose]) - lo
-    total = int(count.sum())
-    if not total:
-        return
-    point = np.repeat(lo - (np.cumsum(count) - count), count) + np.arange(total)
-    p_pose = np.repeat(pose, count)
-    d = [material.columns[c][point] - tips[:, c][p_pose] for c in range(3)]
-    a = [axes[:, c][p_pose] for c in range(3)]
-    h = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
-    rho = np.sqrt(np.maximum(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - h * h, 0.0))
-    inside = part.inside(h, rho)
-    if inside.any():
-        _mark(hit, witness, p_pose[inside], point[inside])
-    if margin > 0:
-        out = ~inside
-        np.minimum.at(clear, p_pose[out], part.bound(h[out], rho[out]))
+    @classmethod
+    def of(cls, material: PrintedMaterial, part: HeadPart, margin: float) -> "_Pyramid":
+        """The scan's view of ``material`` for ``part`` within ``margin``."""
+        sizes = np.array([material.cell_size(level) for level in range(len(material.dims))])
+        radii = np.array([0.5 * np.sqrt(3.0) * s * (1 + 1e-9) + 1e-9 for s in sizes])
+        return cls(tuple(np.ascontiguousarray(f, np.int64) for f in material.first),
+                   np.array(material.dims, np.int64), sizes, radii,
+                   np.ascontiguousarray(material.stencil(part.radius + margin, part.top_level), np.int64),
+                   np.array(part.planes, np.float64).reshape(-1, 3), np.array(part.rule, np.float64))

@@ -331,3 +331,32 @@ def test_the_check_in_blocks_is_the_check_of_the_whole(monkeypatch):
                  (some, check_collisions(tp, NOZZLE, platform_z, only=only))):
         assert np.array_equal(a.indices, b.indices) and np.array_equal(a.kind, b.kind)
         assert np.array_equal(a.locations, b.locations)
+
+
+def test_the_scan_answers_the_same_in_any_chunks_and_threads(monkeypatch):
+    """The compiled scan gives every pose its own answer: hits, witnesses and clearance bounds are the same bits
+    whatever the chunks and the number of threads, with and without a margin."""
+    from neuralslicer.motion import scan as sc
+    from neuralslicer.motion.material import PrintedMaterial
+
+    rng = np.random.default_rng(8)
+    pts = rng.uniform([-30, -30, 0], [30, 30, 12], size=(20000, 3))
+    material = PrintedMaterial.of_points(pts, rng.integers(0, 500, len(pts)), 500)
+    tips = rng.uniform([-25, -25, 4], [25, 25, 14], size=(900, 3))
+    axes = rng.normal(size=(900, 3)) + [0, 0, 2.0]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    visible = rng.integers(0, 501, len(tips))
+    for part, margin in ((sc.HeadPart.cone(NOZZLE, 0.4, material), 0.0), (sc.HeadPart.holder(NOZZLE, material), 5.0)):
+        monkeypatch.setattr(sc, "WORKERS", 1)
+        monkeypatch.setattr(sc, "CHUNK", 4096)
+        one = sc.scan(material, part, tips, axes, visible, margin)
+        monkeypatch.setattr(sc, "WORKERS", 3)
+        monkeypatch.setattr(sc, "CHUNK", 7)
+        many = sc.scan(material, part, tips, axes, visible, margin)
+        assert 50 < one[0].sum() < len(tips) - 50
+        for a, b in zip(one, many):
+            assert np.array_equal(a, b)
+        d = material.points[one[1][one[0]]] - tips[one[0]]            # each witness is inside the part
+        h = np.einsum("ij,ij->i", d, axes[one[0]])
+        assert part.inside(h, np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))).all()
+        assert np.all(material.time[one[1][one[0]]] < visible[one[0]])   # laid before the pose
