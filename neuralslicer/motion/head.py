@@ -24,16 +24,37 @@ def cone_bottom(nozzle: Nozzle, min_height: float) -> float:
     return min(max(min_height, 0.0), nozzle.cone_length)
 
 
+#: a part's membership rule (h_lo, strict, h_hi, slope, radius): h above h_lo (strictly when ``strict``), h at most
+#: h_hi, and the distance from the axis at most slope h + radius (``in_rule``; the scan's kernel reads it too)
+Rule = tuple[float, float, float, float, float]
+
+
+def cone_rule(nozzle: Nozzle, min_height: float) -> Rule:
+    """The cone above ``min_height`` (its top, h = cone_length, included)."""
+    return (float(min_height), 0.0, nozzle.cone_length, float(np.tan(np.radians(nozzle.cone_half_angle_deg))), 0.0)
+
+
+def holder_rule(nozzle: Nozzle) -> Rule:
+    """The holder: above the cone (strictly), up to its top, within its radius."""
+    L = nozzle.cone_length
+    return (L, 1.0, L + nozzle.holder_length, 0.0, nozzle.holder_radius)
+
+
+def in_rule(h: FloatArray, radial: FloatArray, rule: Rule) -> BoolArray:
+    """Membership (k,) in a part given by its rule, at heights ``h`` along the axis and distances ``radial`` from it."""
+    h_lo, strict, h_hi, slope, radius = rule
+    low = h > h_lo if strict else h >= h_lo
+    return low & (h <= h_hi) & (radial <= h * slope + radius)
+
+
 def in_cone(h: FloatArray, radial: FloatArray, nozzle: Nozzle, min_height: float) -> BoolArray:
-    """In the cone above ``min_height`` (its top, h = cone_length, included)."""
-    ta = np.tan(np.radians(nozzle.cone_half_angle_deg))
-    return (h >= min_height) & (h <= nozzle.cone_length) & (radial <= h * ta)
+    """In the cone above ``min_height`` (``cone_rule``)."""
+    return in_rule(h, radial, cone_rule(nozzle, min_height))
 
 
 def in_holder(h: FloatArray, radial: FloatArray, nozzle: Nozzle) -> BoolArray:
-    """In the holder: above the cone (strictly), up to its top, within its radius."""
-    L = nozzle.cone_length
-    return (h > L) & (h <= L + nozzle.holder_length) & (radial <= nozzle.holder_radius)
+    """In the holder (``holder_rule``)."""
+    return in_rule(h, radial, holder_rule(nozzle))
 
 
 def _inside_head(d: FloatArray, axis: FloatArray, nozzle: Nozzle, min_height: float) -> BoolArray:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neuralslicer.motion.head import cone_ball, cone_bottom, holder_ball
+from neuralslicer.motion.head import Rule, cone_ball, cone_bottom, cone_rule, holder_ball, holder_rule, in_rule
 from neuralslicer.motion.material import PrintedMaterial
 from neuralslicer.motion.profile import Nozzle
 from neuralslicer.types import BoolArray, FloatArray, IndexArray
@@ -41,17 +41,14 @@ class HeadPart:
     radius: float
     #: per half-plane (a, b, c): signed distance a h + b radial + c
     planes: tuple[tuple[float, float, float], ...]
-    #: membership (h_lo, strict, h_hi, slope, radius): h above h_lo (strictly if ``strict``), h at most h_hi, radial
-    #: at most slope h + radius (``in_cone``'s and ``in_holder``'s rules)
-    rule: tuple[float, float, float, float, float]
+    #: its exact membership rule (``head.Rule``: ``cone_rule``, ``holder_rule``)
+    rule: Rule
     #: level of the pyramid the scan starts on
     top_level: int
 
     def inside(self, h: FloatArray, radial: FloatArray) -> BoolArray:
         """The exact membership rule (k,) at heights ``h`` along the axis and distances ``radial`` from it."""
-        h_lo, strict, h_hi, slope, radius = self.rule
-        low = h > h_lo if strict else h >= h_lo
-        return low & (h <= h_hi) & (radial <= h * slope + radius)
+        return in_rule(h, radial, self.rule)
 
     def bound(self, h: FloatArray, radial: FloatArray) -> FloatArray:
         """Largest signed half-plane distance (k,): < 0 exactly inside, a lower bound on the distance outside."""
@@ -68,8 +65,7 @@ class HeadPart:
         m, L = cone_bottom(nozzle, min_height), nozzle.cone_length
         al = np.radians(nozzle.cone_half_angle_deg)
         planes = ((-1.0, 0.0, m), (1.0, 0.0, -L), (-float(np.sin(al)), float(np.cos(al)), 0.0))
-        ta = float(np.tan(np.radians(nozzle.cone_half_angle_deg)))           # as in_cone has it
-        return cls(c, r, planes, (float(min_height), 0.0, L, ta, 0.0), _level_for(material, r, 1.7))
+        return cls(c, r, planes, cone_rule(nozzle, min_height), _level_for(material, r, 1.7))
 
     @classmethod
     def holder(cls, nozzle: Nozzle, material: PrintedMaterial) -> "HeadPart":
@@ -77,8 +73,7 @@ class HeadPart:
         c, r = holder_ball(nozzle)
         L = nozzle.cone_length
         planes = ((-1.0, 0.0, L), (1.0, 0.0, -(L + nozzle.holder_length)), (0.0, 1.0, -nozzle.holder_radius))
-        return cls(c, r, planes, (L, 1.0, L + nozzle.holder_length, 0.0, nozzle.holder_radius),   # as in_holder
-                   _level_for(material, r, 0.9))
+        return cls(c, r, planes, holder_rule(nozzle), _level_for(material, r, 0.9))
 
 
 def _level_for(material: PrintedMaterial, radius: float, cubes: float) -> int:

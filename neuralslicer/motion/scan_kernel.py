@@ -36,8 +36,7 @@ def _bound(h: float, rho: float, planes: np.ndarray) -> float:
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def _within_heights(h: float, rule: np.ndarray) -> bool:
-    """The height part of the membership rule (h_lo, strict, h_hi, slope, radius): h above h_lo (strictly when
-    ``strict``) and at most h_hi."""
+    """The height part of a part's membership rule (``head.Rule``, as ``head.in_rule`` reads it)."""
     return (h > rule[0] if rule[1] != 0.0 else h >= rule[0]) and h <= rule[2]
 
 
