@@ -65,6 +65,9 @@ def add_slicing_options(p: argparse.ArgumentParser, out_help: str = "output fold
     p.add_argument("--collision-fallback", choices=("blend", "none"), default=None,
                    help="still colliding: blend the field toward planar layers until collision-free (default blend) "
                         "or keep the colliding program")
+    p.add_argument("--keep-attempts", action="store_true",
+                   help="keep every print of the collision resolution whole in the store (by default the prints "
+                        "not kept drop their toolpaths and motion arrays once a later one replaces them)")
     p.add_argument("--verify", action="store_true",
                    help="anisotropic FEA of the printed part beside planar layers with zig-zag and with stress-following "
                         "infill (spec needs fea)")
@@ -116,7 +119,7 @@ def build_config(options: argparse.Namespace) -> SliceConfig:
     sets = [(keys, getattr(options, name, None)) for name, keys in CONFIG_KEYS.items()]
     if options.objectives is not None:
         sets.append((("objectives",), parse_objectives(options.objectives)))
-    sets += [((flag,), True) for flag in ("verify", "robot") if getattr(options, flag, False)]
+    sets += [((flag,), True) for flag in ("verify", "robot", "keep_attempts") if getattr(options, flag, False)]
     init = getattr(options, "init", None)
     if init is not None:
         sets.append((("neural", "init", "kind"), init if init in ("height", "heat") else "user"))

@@ -10,11 +10,12 @@ from typing import Any
 from prefect import flow, get_run_logger, tags
 from prefect.states import State
 
+from neuralslicer.allocator import release_freed_memory
 from neuralslicer.config import SliceConfig
 from neuralslicer.flows.settings import artifact_key
 from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.output import print_hits
-from neuralslicer.run.pipeline import run_chain
+from neuralslicer.run.pipeline import Printed, run_chain
 from neuralslicer.run.provenance import add_to_metrics, provenance
 from neuralslicer.run.report_embed import embed_figures
 from neuralslicer.run.step_table import step
@@ -23,6 +24,7 @@ from neuralslicer.tasks.codec import StoredMotion, store_user_field
 from neuralslicer.tasks.common import run_step
 from neuralslicer.tasks.export import export_task
 from neuralslicer.tasks.provenance import record_provenance
+from neuralslicer.tasks.release import check_room, forget_released, release_motion, release_toolpaths
 from neuralslicer.tasks.steps import TASKS
 
 
@@ -105,6 +107,23 @@ class TaskSteps:
     def note(self, message: str) -> None:
         """A warning in the flow run's log."""
         get_run_logger().warning(message)
+
+    def release(self, printed: Printed[ArtifactRef]) -> None:
+        """Drop a print's toolpaths and motion arrays from the store (``tasks/release.py``), keeping its metrics, its
+        collisions and its collision map."""
+        freed = release_toolpaths(printed.toolpaths) + release_motion(printed.motion)
+        release_freed_memory()   # the waypoints read for its collision map go back to the kernel
+        if freed:
+            get_run_logger().info(f"released a print that will not be kept: {freed / 1e9:.2f} GB freed "
+                                  f"({printed.motion.path})")
+
+    def restore(self, printed: Printed[ArtifactRef]) -> bool:
+        """Remove a released print's toolpaths and motion groups so that their steps make them again."""
+        return forget_released([printed.toolpaths, printed.motion])
+
+    def check_room(self, like: Printed[ArtifactRef]) -> None:
+        """Raise when the store's disk has less room than a print like this one took."""
+        check_room([like.layers, like.toolpaths, like.motion], unpacked=like.toolpaths)
 
 
 def optimised_on(store: str, fields: list[ArtifactRef]) -> dict[str, Any] | None:

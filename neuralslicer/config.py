@@ -64,6 +64,10 @@ class SliceConfig(BaseModel):
         "((1-t) G + t z, the smallest t found by bisection that is collision-free; t = 1 is planar) or keep it")
     collision_blend_steps: int = Field(
         5, ge=1, le=8, description="bisection steps of the planar blend (t to within 2^-steps)")
+    keep_attempts: bool = Field(
+        False, description="keep every print of the collision resolution whole in the store; by default a print that "
+        "will not be kept drops its toolpaths' and motion's per-waypoint arrays as soon as a later one replaces it "
+        "(its metrics, collisions and collision map stay for the report)")
     verify: bool = Field(False, description="anisotropic FEA of the printed part beside planar layers with zig-zag and "
                          "with stress-following infill (needs the spec's fea block)")
     sr_rounds: int = Field(

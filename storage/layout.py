@@ -61,6 +61,9 @@ DIMENSIONS: dict[str, dict[str, tuple[str, ...]]] = {
         "program/machine": ("move", "machine_axis"),
         "collisions/indices": ("collision",), "collisions/kind": ("collision",),
         "collisions/locations": ("collision", SPATIAL),
+        # a released print (tasks/release.py): the waypoints that collide and the collision map its figure draws
+        "collisions/xyz": ("collision", SPATIAL), "collision_map/clear": ("map_clear", SPATIAL),
+        "collision_map/hit": ("map_hit", SPATIAL), "collision_map/bounds": ("bound", SPATIAL),
     },
     "program": {"gcode": ("byte",)},
     "verify": {"centres": ("voxel", SPATIAL), "strain/*": ("voxel",), "angles/*": ("{0}_segment",),

@@ -194,6 +194,14 @@ class ArtifactStore:
             raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
         return tuple(self._group(path)[name].shape)
 
+    def nbytes(self, path: str) -> int:
+        """Bytes the arrays of a complete group take uncompressed, read from their metadata."""
+        if not self.exists(path):
+            raise FileNotFoundError(f"{self.root}/{path}: no complete artifact there")
+        group = self._group(path)
+        return sum(int(np.prod(a.shape)) * a.dtype.itemsize for _, a in group.members(max_depth=None)
+                   if isinstance(a, zarr.Array))
+
     def read_slices(self, path: str, name: str, length: int) -> Iterator[np.ndarray]:
         """An array of a complete group, ``length`` items along its first axis at a time (a large array read in
         bounded memory)."""

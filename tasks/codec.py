@@ -22,6 +22,7 @@ from neuralslicer.scalar_field import ScalarField
 from neuralslicer.toolpath.types import Toolpaths
 from neuralslicer.storage import ArtifactRef, ArtifactStore, digest
 from neuralslicer.storage.layout import group_kind
+from neuralslicer.tasks.release import HIT_XYZ, released, released_map, whole
 
 P = TypeVar("P", bound=ProgramMoves)
 
@@ -94,13 +95,13 @@ def read_layers(ref: ArtifactRef) -> Layers:
 def read_machine_program(ref: ArtifactRef) -> MachineProgram:
     """The machine program of a stored print alone (not its toolpaths or collisions)."""
     store = ArtifactStore(ref.store, create=False)
-    arrays, attrs = store.read(ref.path, [f"program/{k}" for k in MachineProgram.ARRAYS])
+    arrays, attrs = store.read(whole(ref).path, [f"program/{k}" for k in MachineProgram.ARRAYS])
     return MachineProgram.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()}, attrs["program"])
 
 
 def read_toolpaths(ref: ArtifactRef) -> Toolpaths:
     """The toolpaths step's waypoints."""
-    return Toolpaths.from_arrays(*read(ref))
+    return Toolpaths.from_arrays(*read(whole(ref)))
 
 
 #: bytes of G-code read from the store at a time
@@ -132,7 +133,7 @@ def read_motion(ref: ArtifactRef, program: type[P] = MachineProgram, toolpaths: 
     """Toolpaths, machine program and print metrics (the inverse of ``Motion.to_arrays``); ``program``: ProgramMoves to
     read only the program's arrays that drawing it needs; without ``toolpaths`` the toolpaths are not read (None)."""
     names = ([f"toolpaths/{k}" for k in Toolpaths.ARRAYS] if toolpaths else []) + [f"program/{k}" for k in program.ARRAYS]
-    arrays, attrs = ArtifactStore(ref.store, create=False).read(ref.path, names)
+    arrays, attrs = ArtifactStore(ref.store, create=False).read(whole(ref).path, names)
     part = {p: {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(p + "/")} for p in ("toolpaths", "program")}
     return (
         Toolpaths.from_arrays(part["toolpaths"], attrs["toolpaths"]) if toolpaths else None,
@@ -147,7 +148,7 @@ class StoredToolpaths(Toolpaths):
     time, without the others, until then. The export draws the preview and writes the CSV of a large print so."""
 
     def __init__(self, ref: ArtifactRef) -> None:  # noqa: D107 - the dataclass's fields come from the store
-        self.ref = ref
+        self.ref = whole(ref)
         self.attrs = Toolpaths.stored_attrs(attrs_of(ref)["toolpaths"])
 
     def __getattr__(self, name: str) -> Any:
@@ -193,7 +194,7 @@ class StoredProgram:
 
     def __init__(self, ref: ArtifactRef) -> None:
         """The program of the print stored as the group of ``ref``."""
-        self.ref = ref
+        self.ref = whole(ref)
         self.profile, self.part_offset, self.attrs = program_header(attrs_of(ref)["program"])
 
     def read(self) -> ProgramMoves:
@@ -202,7 +203,10 @@ class StoredProgram:
 
 
 def read_collision_map(ref: ArtifactRef) -> CollisionMap:
-    """Where the head of a stored print hits, as its figure draws it (its waypoints read and dropped again)."""
+    """Where the head of a stored print hits, as its figure draws it (its waypoints read and dropped again; a
+    released print's map as it kept it)."""
+    if released(ref):
+        return released_map(ref)
     arrays, _ = read(ref, ["toolpaths/xyz", "collisions/indices"])
     return CollisionMap.of_indices(arrays["toolpaths/xyz"], arrays["collisions/indices"])
 
@@ -214,7 +218,11 @@ def read_collided(ref: ArtifactRef) -> np.ndarray:
 
 def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
     """(hits (k,3), witnesses (k,3)) of a stored print (:func:`part_collisions`; NaN witnesses where the print
-    predates stored locations)."""
+    predates stored locations; a released print's from the colliding waypoints it kept)."""
+    if released(ref):
+        arrays, _ = read(ref, [HIT_XYZ, "collisions/kind", "collisions/locations"])
+        xyz = arrays[HIT_XYZ]
+        return part_collisions(xyz, np.arange(len(xyz)), arrays["collisions/kind"], arrays["collisions/locations"])
     names = ["toolpaths/xyz", "collisions/indices", "collisions/kind"]
     try:
         arrays, _ = read(ref, [*names, "collisions/locations"])
@@ -237,7 +245,7 @@ class StoredMotion:
     def toolpaths(self) -> Toolpaths:
         """The toolpaths as moved."""
         names = [f"toolpaths/{k}" for k in Toolpaths.ARRAYS]
-        arrays, attrs = read(self.ref, names)
+        arrays, attrs = read(whole(self.ref), names)
         return Toolpaths.from_arrays({k.split("/", 1)[1]: v for k, v in arrays.items()}, attrs["toolpaths"])
 
     @cached_property

@@ -162,13 +162,14 @@ class PlanarBlend:
         return replace(attempts[base].request, label=label, by=self.name, blend=(t, base))
 
     def kept(self, attempts: Sequence[PrintAttempt]) -> int | None:
-        """The index of the blend whose print is the result (None when no blend was tried)."""
+        """The index of the blend whose print is the result (None when no blend was tried, or while none is clean
+        and planar layers are still to be tried)."""
         blends = [i for i, a in enumerate(attempts) if a.request.by == self.name]
         if not blends:
             return None
         _, _, best, _ = self.bisection(attempts)
         t = 1.0 if best is None else best
-        return next(i for i in blends if attempts[i].request.blend[0] == t)
+        return next((i for i in blends if attempts[i].request.blend[0] == t), None)
 
 
 @dataclass(frozen=True)
@@ -216,14 +217,22 @@ class CollisionPolicy:
         return len(attempts) - 1
 
 
-def run_policy(policy: CollisionPolicy, attempt: Callable[[FieldRequest, Sequence[T]], tuple[T, PrintAttempt]]
-               ) -> tuple[list[T], list[PrintAttempt], int]:
+def run_policy(policy: CollisionPolicy, attempt: Callable[[FieldRequest, Sequence[T]], tuple[T, PrintAttempt]],
+               release: Callable[[T], None] | None = None) -> tuple[list[T], list[PrintAttempt], int]:
     """Print fields as the policy asks until it is done: ``attempt(request, outputs so far)`` prints one and
-    returns its output and PrintAttempt. Returns every output, every attempt and the index of the one kept."""
+    returns its output and PrintAttempt; ``release(output)`` is called once for each print as soon as it can no
+    longer be the one kept (the policy's choice only moves on: to a later print, or to a smaller clean blend).
+    Returns every output, every attempt and the index of the one kept."""
     outputs: list[T] = []
     attempts: list[PrintAttempt] = []
+    released: set[int] = set()
     while (request := policy.next_request(attempts)) is not None:
         out, done = attempt(request, outputs)
         outputs.append(out)
         attempts.append(done)
+        kept = policy.kept(attempts)
+        for i in range(len(outputs) - 1):
+            if release is not None and i != kept and i not in released:
+                release(outputs[i])
+                released.add(i)
     return outputs, attempts, policy.kept(attempts)

@@ -17,7 +17,7 @@ from neuralslicer.model.spec import ModelSpec, model_name
 from neuralslicer.motion.collision import CollisionMap
 from neuralslicer.motion.output import Motion, print_hits
 from neuralslicer.run.field_step import Progress, field_of, history_of
-from neuralslicer.run.pipeline import Chain, run_chain
+from neuralslicer.run.pipeline import Chain, Printed, run_chain
 from neuralslicer.run.step_table import StepContext, encode_cage, step
 
 T = TypeVar("T")
@@ -55,6 +55,16 @@ class InProcessSteps:
     def note(self, message: str) -> None:
         """A warning on the ``neuralslicer`` logger."""
         logging.getLogger(LOG).warning(message)
+
+    def release(self, printed: Printed[Any]) -> None:
+        """Nothing: a print in memory is dropped with the chain."""
+
+    def restore(self, printed: Printed[Any]) -> bool:
+        """False: nothing in memory is released."""
+        return False
+
+    def check_room(self, like: Printed[Any]) -> None:
+        """Nothing: the prints are in memory, not on a disk."""
 
 
 def run_results(chain: Chain, name: str, wall_s: dict[str, float]):  # noqa: ANN201 - RunResults, imported late

@@ -107,6 +107,17 @@ class Steps(Protocol[H]):
     def note(self, message: str) -> None:
         """A warning for the run's log."""
 
+    def release(self, printed: Printed[H]) -> None:
+        """A print that will not be kept: drop what only a kept print needs (its per-waypoint arrays), keeping what
+        later steps read of it (its metrics and where the head hit)."""
+
+    def restore(self, printed: Printed[H]) -> bool:
+        """Whether this print had been released (by an earlier run's collision resolution): if so, what is left of
+        it is dropped so that printing its field again makes it whole."""
+
+    def check_room(self, like: Printed[H]) -> None:
+        """Raise when there is no room for another print like this one (its size where it is kept)."""
+
 
 @dataclass(frozen=True)
 class TriedPrint(Generic[H]):
@@ -174,7 +185,10 @@ class Printer(Generic[H]):
         return Printed(field_, layers, toolpaths, motion)
 
     def attempt(self, request: FieldRequest, earlier: Sequence[Printed[H]]) -> tuple[Printed[H], PrintAttempt]:
-        """Compute and print the field a request asks for; what its print hit."""
+        """Compute and print the field a request asks for (after checking there is room for it); what its print
+        hit."""
+        if earlier:
+            self.steps.check_room(earlier[-1])
         printed = self.print_field(self.field(field_call(request, self.inputs, earlier, self.baselines)))
         n, head, platform = self.steps.hits(printed.motion)
         if n:
@@ -198,8 +212,12 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
                                      ).with_tilt_bound(machine.printing_direction_bound_deg())
     printer = Printer(steps, FieldInputs(model, cage, samples, samples_t, user), config.layers, toolpath, machine,
                       fea if toolpath.infill == "stress" else None, {"s3": config.s3, "s3_oneshot": config.s3_oneshot})
-    outputs, attempts, kept = run_policy(CollisionPolicy.for_config(config, neural, objectives), printer.attempt)
+    outputs, attempts, kept = run_policy(CollisionPolicy.for_config(config, neural, objectives), printer.attempt,
+                                         None if config.keep_attempts else steps.release)
     printed, request = outputs[kept], attempts[kept].request
+    if steps.restore(printed):   # released by a run whose resolution went further: printed again, whole
+        steps.note(f"{attempts[kept].request.label}: its print was released by an earlier run; printing it again")
+        printed = printer.print_field(printed.field)
     rounds: list[RoundPrint[H]] = []
     if config.sr_rounds > 1 and "sr" in request.objectives and config.method == "neural":
         printed, rounds = strength_rounds(printer, fea, printed, request, config.sr_rounds)

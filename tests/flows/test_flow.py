@@ -267,6 +267,7 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     keep = write_config(tmp_path / "keep.yaml", machine=str(machine))
     assert main(slice_cmd(small_part, out, keep, "--objectives", "sf")) == 0
     colliding = json.loads((out / "metrics.json").read_text())
+    colliding_gcode = (out / "print.gcode").read_bytes()
     assert colliding["n_collisions"] > 0 and colliding["field.blend_planar"] == 0.0
     assert colliding["sf.overhang_area_fraction"] < colliding["sf.overhang_area_fraction_planar"]
 
@@ -307,6 +308,22 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
     # the blend keeps part of the optimised field's gain unless it had to go all the way to planar layers
     if metrics["field.blend_planar"] < 1.0:
         assert metrics["sf.overhang_area_fraction"] <= metrics["sf.overhang_area_fraction_planar"]
+
+    # the prints not kept were released from the store (their metrics and collisions stay, the report above read
+    # them): whole are only the retry's print, kept by the second run, and the chosen blend's
+    from neuralslicer.storage import ArtifactStore
+    from neuralslicer.tasks.release import RELEASED
+
+    store = ArtifactStore(str(out / "store.zarr"), create=False)
+    for step in ("toolpaths", "motion"):
+        groups = [store.attrs(f"lpart/{step}/{d}") for d in store.children(f"lpart/{step}")]
+        assert len(groups) == 2 + tasks.count("field_blend") and sum(RELEASED not in a for a in groups) == 2
+    # the first run again: its print, released by the second, is printed again, whole and the same
+    assert main(slice_cmd(small_part, out, keep, "--objectives", "sf")) == 0
+    runs = json.loads((out / "run.json").read_text())["tasks"]
+    assert [r["state"] for r in runs if r["task"] in ("toolpaths", "motion")] == ["Cached"] * 2 + ["Completed"] * 2
+    assert (out / "print.gcode").read_bytes() == colliding_gcode
+    assert json.loads((out / "metrics.json").read_text())["n_collisions"] == colliding["n_collisions"]
 
 
 @pytest.mark.parametrize("model", ["spec.yaml", "part_scan.pcd"])

@@ -223,11 +223,14 @@ def test_the_slice_passes_a_three_axis_profiles_bound_to_the_optimisation(monkey
         def run(self, step, **parameters):
             return None
 
+        def release(self, printed):
+            return None
+
     profile = _Profile(bound)
     profile.nozzle = NOZZLE
     seen = {}
 
-    def capture(policy, attempt):
+    def capture(policy, attempt, release=None):
         seen["neural"] = policy.first.neural
         raise _Stop
 

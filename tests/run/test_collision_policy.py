@@ -20,20 +20,47 @@ def policy(**config: object) -> CollisionPolicy:
 
 
 def play(p: CollisionPolicy, outcomes: Sequence[tuple[int, int, int]] | None = None,
-         clean_from: float | None = None) -> tuple[list[PrintAttempt], int]:
+         clean_from: float | None = None, released: list[tuple[int, int]] | None = None
+         ) -> tuple[list[PrintAttempt], int]:
     """Run the policy against scripted prints: optimised fields collide as ``outcomes`` says ((collisions, head
-    hits, platform hits) each, clean once they run out); a blend t is clean when t >= ``clean_from``."""
+    hits, platform hits) each, clean once they run out); a blend t is clean when t >= ``clean_from``. Each print
+    released is appended to ``released`` as (its index, the prints made by then)."""
     script = list(outcomes or [])
+    made: list[int] = []
 
     def attempt(request: FieldRequest, earlier: Sequence[int]) -> tuple[int, PrintAttempt]:
+        made.append(len(earlier))
         if request.blend is not None:
             clean = clean_from is not None and request.blend[0] >= clean_from
             return len(earlier), PrintAttempt(request, 0 if clean else 3, 3, 0)
         n, head, platform = script.pop(0) if script else (0, 0, 0)
         return len(earlier), PrintAttempt(request, n, head, platform)
 
-    _, attempts, kept = run_policy(p, attempt)
+    _, attempts, kept = run_policy(p, attempt, None if released is None else lambda i: released.append((i, len(made))))
     return attempts, kept
+
+
+@pytest.mark.parametrize(("config", "outcomes", "clean_from"), [
+    ({}, [], None),                                                          # clean at once
+    ({"collision_refinements": 3}, [(5, 5, 0), (4, 4, 0)], None),            # refined until clean
+    ({"collision_refinements": 1, "collision_retries": 1, "collision_fallback": "none"}, [(5, 5, 0)] * 3, None),
+    ({"collision_refinements": 0, "collision_retries": 0, "collision_blend_steps": 4}, [(5, 5, 0)], 0.3),
+    ({"collision_refinements": 1, "collision_retries": 0, "collision_blend_steps": 2}, [(5, 5, 0)] * 2, None),
+])
+def test_every_print_but_the_kept_one_is_released_once_as_soon_as_it_cannot_be_kept(
+        config: dict, outcomes: list, clean_from: float | None) -> None:
+    """The kept print is never released; every other one is, once, and no later than when the next print is made
+    (a clean blend stays until a smaller clean one is found)."""
+    released: list[tuple[int, int]] = []
+    attempts, kept = play(policy(**config), outcomes, clean_from, released)
+    indices = [i for i, _ in released]
+    assert sorted(indices) == [i for i in range(len(attempts)) if i != kept] and len(set(indices)) == len(indices)
+    for i, made in released:
+        a = attempts[i]
+        if a.request.blend is None or not a.clean:
+            assert made == i + 2 or (made == i + 1 and a.request.blend is not None)
+    blends = [(i, made) for i, made in released if attempts[i].clean and attempts[i].request.blend is not None]
+    assert all(attempts[i].request.blend[0] > attempts[kept].request.blend[0] for i, _ in blends)
 
 
 def test_a_clean_first_print_is_the_answer() -> None:
