@@ -231,7 +231,7 @@ def run_policy(policy: CollisionPolicy, attempt: Callable[[FieldRequest, Sequenc
         outputs.append(out)
         attempts.append(done)
         kept = policy.kept(attempts)
-        for i in range(len(outputs) - 1):
+        for i in range(len(outputs)):
             if release is not None and i != kept and i not in released:
                 release(outputs[i])
                 released.add(i)

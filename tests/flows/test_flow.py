@@ -273,7 +273,13 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
 
     # the paper's fallback: one re-optimisation with larger harmonic weights and CA, reported after the first
     retry = write_config(tmp_path / "retry.yaml", machine=str(machine), collision_retries=1, collision_fallback="none")
-    assert main(slice_cmd(small_part, out, retry, "--objectives", "sf")) == 0
+    assert main(slice_cmd(small_part, out, retry, "--objectives", "sf", "--keep-attempts")) == 0
+    from neuralslicer.storage import ArtifactStore
+    from neuralslicer.tasks.release import RELEASED
+
+    store = ArtifactStore(str(out / "store.zarr"), create=False)
+    motions = [store.attrs(f"lpart/motion/{d}") for d in store.children("lpart/motion")]
+    assert len(motions) == 2 and not any(RELEASED in a for a in motions)   # --keep-attempts: both whole
     metrics = json.loads((out / "metrics.json").read_text())
     runs = json.loads((out / "run.json").read_text())["tasks"]
     assert [r["state"] for r in runs if r["task"] == "field"] == ["Cached", "Completed"]
@@ -311,10 +317,6 @@ def test_collisions_fall_back_to_a_collision_free_blend(tmp_path, small_part):
 
     # the prints not kept were released from the store (their metrics and collisions stay, the report above read
     # them): whole are only the retry's print, kept by the second run, and the chosen blend's
-    from neuralslicer.storage import ArtifactStore
-    from neuralslicer.tasks.release import RELEASED
-
-    store = ArtifactStore(str(out / "store.zarr"), create=False)
     for step in ("toolpaths", "motion"):
         groups = [store.attrs(f"lpart/{step}/{d}") for d in store.children(f"lpart/{step}")]
         assert len(groups) == 2 + tasks.count("field_blend") and sum(RELEASED not in a for a in groups) == 2
