@@ -219,17 +219,15 @@ def read_collided(ref: ArtifactRef) -> np.ndarray:
 def read_part_collisions(ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
     """(hits (k,3), witnesses (k,3)) of a stored print (:func:`part_collisions`; NaN witnesses where the print
     predates stored locations; a released print's from the colliding waypoints it kept)."""
-    if released(ref):
-        arrays, _ = read(ref, [HIT_XYZ, "collisions/kind", "collisions/locations"])
-        xyz = arrays[HIT_XYZ]
-        return part_collisions(xyz, np.arange(len(xyz)), arrays["collisions/kind"], arrays["collisions/locations"])
-    names = ["toolpaths/xyz", "collisions/indices", "collisions/kind"]
+    kept = released(ref)   # a released print keeps the colliding waypoints alone, in the order of the indices
+    xyz = HIT_XYZ if kept else "toolpaths/xyz"
+    names = [xyz, "collisions/indices", "collisions/kind"]
     try:
         arrays, _ = read(ref, [*names, "collisions/locations"])
     except KeyError:
         arrays, _ = read(ref, names)
-    return part_collisions(arrays["toolpaths/xyz"], arrays["collisions/indices"], arrays["collisions/kind"],
-                           arrays.get("collisions/locations"))
+    indices = np.arange(len(arrays[xyz])) if kept else arrays["collisions/indices"]
+    return part_collisions(arrays[xyz], indices, arrays["collisions/kind"], arrays.get("collisions/locations"))
 
 
 class StoredMotion:

@@ -230,9 +230,9 @@ def run_policy(policy: CollisionPolicy, attempt: Callable[[FieldRequest, Sequenc
         out, done = attempt(request, outputs)
         outputs.append(out)
         attempts.append(done)
-        kept = policy.kept(attempts)
-        for i in range(len(outputs)):
-            if release is not None and i != kept and i not in released:
+        if release is not None:
+            kept = policy.kept(attempts)
+            for i in sorted(set(range(len(outputs))) - released - {kept}):
                 release(outputs[i])
                 released.add(i)
     return outputs, attempts, policy.kept(attempts)

@@ -216,7 +216,7 @@ def run_chain(steps: Steps[H], spec: ModelSpec, config: SliceConfig, user: H | N
                                          None if config.keep_attempts else steps.release)
     printed, request = outputs[kept], attempts[kept].request
     if steps.restore(printed):   # released by a run whose resolution went further: printed again, whole
-        steps.note(f"{attempts[kept].request.label}: its print was released by an earlier run; printing it again")
+        steps.note(f"{request.label}: its print was released by an earlier run; printing it again")
         printed = printer.print_field(printed.field)
     rounds: list[RoundPrint[H]] = []
     if config.sr_rounds > 1 and "sr" in request.objectives and config.method == "neural":

@@ -18,8 +18,9 @@ from neuralslicer.tasks.codec import (StoredMotion, read_collision_map, read_mac
 N = 200_000
 
 
-def _print(tmp_path):
-    """A store with one print's toolpaths and motion groups (random waypoints, 300 collisions of each kind)."""
+def _print(tmp_path, locations: bool = True):
+    """A store with one print's toolpaths and motion groups (random waypoints, 300 collisions of each kind; without
+    ``locations``, a print from before they were stored)."""
     rng = np.random.default_rng(7)
     store = ArtifactStore(str(tmp_path / "store.zarr"))
     xyz, axis = rng.normal(size=(N, 3)) * 50, np.tile([0.0, 0.0, 1.0], (N, 1))
@@ -31,7 +32,8 @@ def _print(tmp_path):
     store.write("m/toolpaths/t0", columns, {"n": N})
     motion = {**{f"toolpaths/{k}": v for k, v in columns.items()},
               "program/machine": rng.normal(size=(N, 5)), "program/time_s": rng.random(N),
-              "collisions/indices": indices, "collisions/kind": kind, "collisions/locations": xyz[indices] + 0.1}
+              "collisions/indices": indices, "collisions/kind": kind,
+              **({"collisions/locations": xyz[indices] + 0.1} if locations else {})}
     store.write("m/motion/m0", motion, {"metrics": {"n_collisions": 900, "n_platform_collisions": 300},
                                          "toolpaths": {}, "program": {}})
     return store, store.ref("m/toolpaths/t0", "t0"), store.ref("m/motion/m0", "m0")
@@ -82,3 +84,12 @@ def test_the_next_print_needs_room_on_the_stores_disk(tmp_path, monkeypatch):
     rel.release_motion(motion)
     with pytest.raises(InputError):
         rel.check_room([toolpaths, motion], unpacked=toolpaths)
+
+
+def test_a_print_from_before_stored_locations_is_released_too(tmp_path):
+    _, toolpaths, motion = _print(tmp_path, locations=False)
+    hits, witnesses = read_part_collisions(motion)
+    rel.release_motion(motion)
+    again = read_part_collisions(motion)
+    np.testing.assert_array_equal(again[0], hits)
+    assert len(hits) == 600 and np.isnan(witnesses).all() and np.isnan(again[1]).all()
